@@ -1,0 +1,392 @@
+"""Planar capsule bodies: one padded MuJoCo template per space, specialised per morphology in JAX.
+
+A space describes its bodies in two parts:
+
+* a static `BodyPlan`: every geom and limb slot that any morphology of the space may use, with
+  the body each geom hangs on and the parent of each limb. This fixes the MuJoCo tree, joint
+  types and contact pairs, which MJX requires to be identical across a vmapped batch;
+* a dynamic `Layout`, computed from a morphology with jittable JAX ops: which slots are active
+  and where their capsules lie.
+
+`write_mjcf` turns a plan and a layout into MJCF: with every slot (the padded template) or with
+the active slots alone (the export, which MuJoCo compiles by itself and so serves as the
+independent reference). `specialise` turns the template `mjx.Model` into the model of one
+morphology by overwriting numeric fields only, and recomputes every derived constant that the
+MuJoCo compiler would have computed for the unpadded body.
+
+How an inactive slot is made inert:
+  * its geoms get zero mass and a contact margin of -1e3: MJX adds the margins of both geoms and
+    activates a contact only when `dist < margin`, so a floor contact never activates;
+  * its limb body gets zero mass and inertia, its actuator zero gear and its dof an armature of
+    1, which keeps the mass matrix positive definite. With zero inertia the dof is decoupled
+    from every other dof (the mass matrix is block diagonal) and feels no force, so the joint
+    stays at rest and the active dofs move exactly as in the unpadded model.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import io
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from flax import struct
+
+with contextlib.redirect_stdout(io.StringIO()):  # mjx prints when the optional warp is missing
+    from mujoco import mjx
+
+DENSITY = 1000.0  # kg/m^3, MuJoCo's default geom density
+INACTIVE_MARGIN = -1e3  # m: contacts of an inactive geom never activate
+INACTIVE_ARMATURE = 1.0  # kg m^2: keeps the mass matrix of a massless slot positive definite
+ROOT_JOINTS = ("rootx", "rootz", "rooty")
+
+
+@dataclasses.dataclass(frozen=True)
+class BodyPlan:
+    """The static slots of a space's padded template.
+
+    Body 0 is the root (the trunk, moving in the x-z plane through `ROOT_JOINTS`); bodies 1..L
+    are limbs, each with one actuated hinge about y at its body origin.
+    """
+
+    geom_names: tuple[str, ...]  # (G,)
+    geom_body: tuple[int, ...]  # (G,): 0 for the root, k for limb k
+    geom_rgba: tuple[tuple[float, float, float, float], ...]  # (G,)
+    limb_nodes: tuple[int, ...]  # (L,): the morphology node of limb k+1, naming its parts
+    limb_parent: tuple[int, ...]  # (L,): parent body of limb k+1 (0 root, or an earlier limb)
+    joint_range: tuple[float, float] = (-1.0, 1.0)  # rad, for every limb hinge
+    joint_damping: float = 0.1
+    joint_armature: float = 0.01
+    gear: float = 30.0  # N m per unit of control, controls in [-1, 1]
+    timestep: float = 0.005
+    friction: float = 1.0
+    # Newton solver budget: MJX runs the largest count of a vmapped batch, so keep it small.
+    iterations: int = 4
+    ls_iterations: int = 8
+
+    def __post_init__(self):
+        if not len(self.geom_names) == len(self.geom_body) == len(self.geom_rgba):
+            raise ValueError("geom_names, geom_body and geom_rgba differ in length")
+        for k, p in enumerate(self.limb_parent):
+            if not 0 <= p <= k:
+                raise ValueError(f"limb {k + 1} has parent {p}: parents must come first")
+
+    @property
+    def num_limbs(self) -> int:
+        return len(self.limb_nodes)
+
+    @property
+    def body_names(self) -> tuple[str, ...]:
+        return ("node0",) + tuple(f"node{i}" for i in self.limb_nodes)
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return tuple(f"joint{i}" for i in self.limb_nodes)
+
+    @property
+    def actuator_names(self) -> tuple[str, ...]:
+        return tuple(f"act{i}" for i in self.limb_nodes)
+
+
+@struct.dataclass
+class Layout:
+    """Where the active capsules of one morphology lie; every frame is a body frame."""
+
+    root_pos: jax.Array  # (3,): root body position in the world at rest
+    limb_active: jax.Array  # (L,) bool
+    limb_pos: jax.Array  # (L, 3): hinge anchor (= limb body origin) in its parent's frame
+    geom_active: jax.Array  # (G,) bool
+    geom_from: jax.Array  # (G, 3): capsule segment start in its body's frame
+    geom_to: jax.Array  # (G, 3): capsule segment end in its body's frame
+    geom_radius: jax.Array  # (G,)
+
+
+def write_mjcf(plan: BodyPlan, layout: Layout, name: str, padded: bool) -> str:
+    """MJCF of a layout: every slot if `padded` (the template), else the active slots only."""
+    lay = jax.tree.map(np.asarray, layout)
+    fmt = lambda v: " ".join(f"{float(x):.17g}" for x in v)  # noqa: E731 (exact round trip)
+
+    def geoms(body: int, indent: str) -> list[str]:
+        lines = []
+        for g, b in enumerate(plan.geom_body):
+            if b != body or not (padded or lay.geom_active[g]):
+                continue
+            fromto = fmt(np.concatenate([lay.geom_from[g], lay.geom_to[g]]))
+            lines.append(
+                f'{indent}<geom name="{plan.geom_names[g]}" type="capsule" fromto="{fromto}" '
+                f'size="{float(lay.geom_radius[g]):.17g}" rgba="{fmt(plan.geom_rgba[g])}"/>'
+            )
+        return lines
+
+    def limbs(parent: int, indent: str) -> list[str]:
+        lines = []
+        for k, p in enumerate(plan.limb_parent):
+            if p != parent or not (padded or lay.limb_active[k]):
+                continue
+            i = plan.limb_nodes[k]
+            lines.append(f'{indent}<body name="node{i}" pos="{fmt(lay.limb_pos[k])}">')
+            lines.append(f'{indent}  <joint name="joint{i}"/>')
+            lines += geoms(k + 1, indent + "  ")
+            lines += limbs(k + 1, indent + "  ")
+            lines.append(f"{indent}</body>")
+        return lines
+
+    motors = [
+        f'    <motor name="act{i}" joint="joint{i}" gear="{plan.gear:.17g}"/>'
+        for k, i in enumerate(plan.limb_nodes)
+        if padded or lay.limb_active[k]
+    ]
+    lo, hi = plan.joint_range
+    body = (
+        [f'    <body name="node0" pos="{fmt(lay.root_pos)}">']
+        + [
+            '      <joint name="rootx" type="slide" axis="1 0 0" limited="false" damping="0" '
+            'armature="0"/>',
+            '      <joint name="rootz" type="slide" axis="0 0 1" limited="false" damping="0" '
+            'armature="0"/>',
+            '      <joint name="rooty" type="hinge" axis="0 1 0" limited="false" damping="0" '
+            'armature="0"/>',
+        ]
+        + geoms(0, "      ")
+        + limbs(0, "      ")
+        + ["    </body>"]
+    )
+    return "\n".join(
+        [
+            f'<mujoco model="{name}">',
+            '  <compiler angle="radian" autolimits="true"/>',
+            f'  <option timestep="{plan.timestep:.17g}" iterations="{plan.iterations}" '
+            f'ls_iterations="{plan.ls_iterations}"/>',
+            "  <default>",
+            f'    <joint type="hinge" axis="0 1 0" range="{lo:.17g} {hi:.17g}" '
+            f'damping="{plan.joint_damping:.17g}" armature="{plan.joint_armature:.17g}"/>',
+            f'    <geom contype="1" conaffinity="0" condim="3" friction="{plan.friction:.17g} '
+            f'0.1 0.1" density="{DENSITY:.17g}"/>',
+            '    <motor ctrlrange="-1 1"/>',
+            "  </default>",
+            "  <worldbody>",
+            '    <light name="sun" pos="0 0 4" dir="0 0 -1" directional="true"/>',
+            '    <geom name="floor" type="plane" size="0 0 0.05" conaffinity="1" '
+            'rgba="0.8 0.85 0.9 1"/>',
+        ]
+        + body
+        + ["  </worldbody>", "  <actuator>"]
+        + motors
+        + ["  </actuator>", "</mujoco>", ""]
+    )
+
+
+def compile_template(plan: BodyPlan, layout: Layout, name: str) -> mujoco.MjModel:
+    """Compiles the padded template; `layout` only needs to be a valid placement of every slot."""
+    model = mujoco.MjModel.from_xml_string(write_mjcf(plan, layout, name, padded=True))
+    # Frames vary per morphology, so no body or geom frame may be assumed to coincide with
+    # another: MuJoCo's renderer and C engine read these flags (MJX's JAX engine ignores them).
+    model.body_sameframe[:] = 0
+    model.geom_sameframe[:] = 0
+    return model
+
+
+@dataclasses.dataclass(frozen=True)
+class TemplateIndex:
+    """Ids of the plan's slots in the compiled template."""
+
+    body: np.ndarray  # (1 + L,) body ids, root first
+    geom: np.ndarray  # (G,)
+    limb_dof: np.ndarray  # (L,)
+    actuator: np.ndarray  # (L,)
+
+    @classmethod
+    def build(cls, plan: BodyPlan, model: mujoco.MjModel) -> "TemplateIndex":
+        ids = lambda kind, names: np.array([model.__getattribute__(kind)(n).id for n in names])  # noqa: E731
+        joints = ids("joint", plan.joint_names)
+        return cls(
+            body=ids("body", plan.body_names),
+            geom=ids("geom", plan.geom_names),
+            limb_dof=model.jnt_dofadr[joints] if len(joints) else np.zeros(0, int),
+            actuator=ids("actuator", plan.actuator_names),
+        )
+
+
+def _capsule_frame(start: jax.Array, end: jax.Array):
+    """Centre, half length and quaternion of a capsule from `start` to `end` in the x-z plane.
+
+    MuJoCo aligns a capsule's z axis with the segment; here that is a rotation about y by
+    atan2(dx, dz). A capsule is symmetric about its axis, so this frame and the one MuJoCo's
+    compiler picks describe the same solid.
+    """
+    axis = end - start
+    half = 0.5 * jnp.linalg.norm(axis, axis=-1)
+    angle = jnp.arctan2(axis[..., 0], axis[..., 2])
+    zero = jnp.zeros_like(angle)
+    quat = jnp.stack([jnp.cos(angle / 2), zero, jnp.sin(angle / 2), zero], -1)
+    return 0.5 * (start + end), half, quat, angle
+
+
+def _capsule_inertia(radius: jax.Array, half: jax.Array):
+    """Mass and principal inertia (x, y, z; z along the axis) of a solid capsule of DENSITY."""
+    h = 2 * half
+    cyl = DENSITY * jnp.pi * radius**2 * h
+    caps = DENSITY * 4.0 / 3.0 * jnp.pi * radius**3  # both hemispheres
+    axial = cyl * radius**2 / 2 + caps * 2 * radius**2 / 5
+    perp = cyl * (3 * radius**2 + h**2) / 12 + caps * (2 * radius**2 / 5 + h**2 / 4 + 3 * h * radius / 8)
+    return cyl + caps, jnp.stack([perp, perp, axial], -1)
+
+
+def _rot_y(angle: jax.Array) -> jax.Array:
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    one, zero = jnp.ones_like(c), jnp.zeros_like(c)
+    return jnp.stack(
+        [jnp.stack([c, zero, s], -1), jnp.stack([zero, one, zero], -1), jnp.stack([-s, zero, c], -1)],
+        -2,
+    )
+
+
+def _body_inertial(plan: BodyPlan, mass_g, inertia_g, centre_g, angle_g):
+    """Mass, centre of mass, principal inertia and its frame for every body of the plan.
+
+    Each body's inertia tensor is the sum of its capsules' tensors moved to the body's centre of
+    mass. Every capsule axis lies in the x-z plane, so the tensor has no xy or yz products and
+    its principal frame is a rotation about y, found in closed form.
+    """
+    num_bodies = 1 + plan.num_limbs
+    owner = np.zeros((num_bodies, len(plan.geom_body)))  # owner[b, g] = 1 if geom g is on body b
+    owner[np.array(plan.geom_body), np.arange(len(plan.geom_body))] = 1.0
+    mass = owner @ mass_g
+    safe = jnp.where(mass > 0, mass, 1.0)
+    com = (owner @ (mass_g[:, None] * centre_g)) / safe[:, None]
+    rot = _rot_y(angle_g)  # (G, 3, 3)
+    tensor_g = jnp.einsum("gij,gj,gkj->gik", rot, inertia_g, rot)
+    offset = centre_g[None] - com[:, None]  # (B, G, 3)
+    eye = jnp.eye(3)
+    shift = mass_g[None, :, None, None] * (
+        jnp.sum(offset**2, -1)[..., None, None] * eye - offset[..., :, None] * offset[..., None, :]
+    )
+    tensor = jnp.einsum("bg,gij->bij", owner, tensor_g) + jnp.sum(owner[..., None, None] * shift, 1)
+    ixx, iyy, izz, ixz = tensor[:, 0, 0], tensor[:, 1, 1], tensor[:, 2, 2], tensor[:, 0, 2]
+    phi = 0.5 * jnp.arctan2(2 * ixz, ixx - izz)  # principal axis (cos phi, 0, sin phi)
+    c, s = jnp.cos(phi), jnp.sin(phi)
+    principal = jnp.stack(
+        [c * c * ixx + 2 * c * s * ixz + s * s * izz, iyy, s * s * ixx - 2 * c * s * ixz + c * c * izz],
+        -1,
+    )
+    zero = jnp.zeros_like(phi)
+    iquat = jnp.stack([jnp.cos(phi / 2), zero, -jnp.sin(phi / 2), zero], -1)  # rotation by -phi
+    return mass, com, principal, iquat
+
+
+def _put(array: jax.Array, index, value) -> jax.Array:
+    """`array.at[index].set(value)`, keeping the dtype of `array`."""
+    return array.at[index].set(jnp.asarray(value).astype(array.dtype))
+
+
+def specialise(template: mjx.Model, plan: BodyPlan, index: TemplateIndex, layout: Layout) -> mjx.Model:
+    """The template specialised to one layout, with MuJoCo's derived constants recomputed.
+
+    Pure JAX on numeric fields only: jit- and vmap-friendly, one compile for every morphology.
+    """
+    dtype = template.body_mass.dtype
+    layout = jax.tree.map(lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, layout)
+    geom_on = layout.geom_active.astype(dtype)
+    limb_on = layout.limb_active.astype(dtype)
+
+    # GEOMS
+    centre, half, quat, angle = _capsule_frame(layout.geom_from, layout.geom_to)
+    mass_g, inertia_g = _capsule_inertia(layout.geom_radius, half)
+    mass_g = mass_g * geom_on
+    inertia_g = inertia_g * geom_on[:, None]
+    g = index.geom
+    size = _put(_put(template.geom_size, (g, 0), layout.geom_radius), (g, 1), half)
+    rgba = _put(template.geom_rgba, (g, 3), template.geom_rgba[g, 3] * geom_on)
+    margin = _put(template.geom_margin, g, jnp.where(layout.geom_active, template.geom_margin[g], INACTIVE_MARGIN))
+
+    # BODIES
+    mass, com, principal, iquat = _body_inertial(plan, mass_g, inertia_g, centre, angle)
+    b = index.body
+    body_pos = _put(_put(template.body_pos, b[0], layout.root_pos), b[1:], layout.limb_pos)
+    subtree = mass
+    for k in reversed(range(plan.num_limbs)):  # limbs come after their parents
+        subtree = subtree.at[plan.limb_parent[k]].add(subtree[k + 1])
+
+    # LIMB JOINTS AND ACTUATORS
+    armature = _put(
+        template.dof_armature, index.limb_dof, jnp.where(layout.limb_active, plan.joint_armature, INACTIVE_ARMATURE)
+    )
+    gear = _put(template.actuator_gear, (index.actuator, 0), plan.gear * limb_on)
+
+    model = template.replace(
+        geom_pos=_put(template.geom_pos, g, centre),
+        geom_quat=_put(template.geom_quat, g, quat),
+        geom_size=size,
+        geom_rbound=_put(template.geom_rbound, g, layout.geom_radius + half),
+        geom_rgba=rgba,
+        geom_margin=margin,
+        body_pos=body_pos,
+        body_mass=_put(template.body_mass, b, mass),
+        body_subtreemass=_put(template.body_subtreemass, b, subtree),
+        body_ipos=_put(template.body_ipos, b, com),
+        body_iquat=_put(template.body_iquat, b, iquat),
+        body_inertia=_put(template.body_inertia, b, principal),
+        dof_armature=armature,
+        actuator_gear=gear,
+    )
+    return _set_constants(model, index, limb_on)
+
+
+def _set_constants(model: mjx.Model, index: TemplateIndex, limb_on: jax.Array) -> mjx.Model:
+    """Constants MuJoCo computes at qpos0 (engine_setconst.c), from the model's own mass matrix."""
+    data = mjx.make_data(model)
+    data = mjx.kinematics(model, data)
+    data = mjx.com_pos(model, data)
+    data = mjx.crb(model, data)
+    mass_matrix = mjx.full_m(model, data)
+    inv_m = jnp.linalg.inv(mass_matrix)
+
+    # body_invweight0: mean diagonal of J M^-1 J' for the Jacobian of each body's centre of mass.
+    def invweight(body_id):
+        jacp, jacr = mjx.jac(model, data, data.xipos[body_id], body_id)
+        jac = jnp.concatenate([jacp, jacr], 1).T  # (6, nv)
+        a = jac @ inv_m @ jac.T
+        return jnp.stack([jnp.trace(a[:3, :3]) / 3, jnp.trace(a[3:, 3:]) / 3])
+
+    body_ids = np.arange(1, model.nbody)
+    body_invweight0 = _put(model.body_invweight0, body_ids, jax.vmap(invweight)(body_ids))
+
+    # dof_invweight0: diagonal of M^-1 (every dof here is a hinge or slide); dof_M0: diagonal of M.
+    dof_invweight0 = jnp.diagonal(inv_m)
+    dof_m0 = jnp.diagonal(mass_matrix)
+
+    # actuator_acc0: norm of M^-1 times the actuator's moment (its gear on its dof).
+    acc0 = _put(
+        model.actuator_acc0,
+        index.actuator,
+        jnp.abs(model.actuator_gear[index.actuator, 0]) * jnp.linalg.norm(inv_m[:, index.limb_dof], axis=0)
+    )
+
+    # stat.meaninertia: mean diagonal of M over the dofs the unpadded model would have.
+    dof_on = jnp.ones(model.nv, model.body_mass.dtype).at[index.limb_dof].set(limb_on)
+    meaninertia = jnp.sum(dof_m0 * dof_on) / jnp.sum(dof_on)
+    return model.replace(
+        body_invweight0=body_invweight0,
+        dof_invweight0=dof_invweight0,
+        dof_M0=dof_m0,
+        actuator_acc0=acc0,
+        stat=model.stat.replace(meaninertia=meaninertia),
+    )
+
+
+def lowest_point(plan: BodyPlan, layout: Layout) -> jax.Array:
+    """() height of the lowest active capsule surface below the root origin, at rest (<= 0).
+
+    At rest every joint is at zero and every body frame is aligned with the root's, so a limb's
+    origin is the sum of its ancestors' anchors.
+    """
+    origin = [jnp.zeros(3, layout.limb_pos.dtype)]
+    for k, p in enumerate(plan.limb_parent):
+        origin.append(origin[p] + layout.limb_pos[k])
+    body_origin = jnp.stack(origin)[np.array(plan.geom_body)]  # (G, 3)
+    bottom = jnp.minimum(layout.geom_from[:, 2], layout.geom_to[:, 2]) + body_origin[:, 2]
+    bottom = bottom - layout.geom_radius
+    return jnp.min(jnp.where(layout.geom_active, bottom, jnp.inf))

@@ -1,0 +1,27 @@
+"""Morphology spaces, registered by name.
+
+To add a space: subclass `Space` in a module of this package and list it in `_REGISTRY`.
+"""
+
+from __future__ import annotations
+
+from evojax_morph.spaces.bad_walker import BadWalker
+from evojax_morph.spaces.base import Space
+from evojax_morph.spaces.constructor import Constructor
+
+_REGISTRY: dict[str, type[Space]] = {cls.name: cls for cls in (BadWalker, Constructor)}
+
+
+def list_spaces() -> list[str]:
+    """Names accepted by `make_space`."""
+    return sorted(_REGISTRY)
+
+
+def make_space(name: str, **kwargs) -> Space:
+    """The space registered as `name`; keyword arguments go to its constructor."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown space {name!r}; known spaces: {', '.join(list_spaces())}")
+    return _REGISTRY[name](**kwargs)
+
+
+__all__ = ["BadWalker", "Constructor", "Space", "list_spaces", "make_space"]

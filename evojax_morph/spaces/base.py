@@ -1,0 +1,176 @@
+"""What every morphology space provides, and the machinery they share."""
+
+from __future__ import annotations
+
+import abc
+import functools
+import json
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from evojax_morph import physics
+from evojax_morph.morphology import Morphology, format_tree
+from evojax_morph.physics import mjx
+
+
+class Space(abc.ABC):
+    """A morphology search space: its initial body, its mutations and its physics.
+
+    State: a `Morphology` of `max_nodes` slots.
+    Action: `(node, mutation)` with `node < max_nodes` and `mutation < num_mutations`; valid
+      actions are those of `action_mask(m)`. `mutate` is pure and jittable; a masked action is a
+      no-op inside jit and a `ValueError` when called eagerly from Python.
+    Physics: `template` is the padded `mujoco.MjModel` holding every slot; `mjx_model(m)` is that
+      template specialised to `m` in JAX; `to_mjcf(m)` is the standalone, unpadded MJCF of `m`.
+    """
+
+    name: ClassVar[str]
+    kind_names: ClassVar[tuple[str, ...]]
+    site_names: ClassVar[tuple[str, ...]]
+    mutation_names: ClassVar[tuple[str, ...]]
+    attr_names: ClassVar[tuple[str, ...]]
+    max_nodes: int
+
+    # --- what a space defines -------------------------------------------------------------
+
+    @abc.abstractmethod
+    def initial(self) -> Morphology:
+        """m0, the morphology every evolution starts from."""
+
+    @abc.abstractmethod
+    def action_mask(self, m: Morphology) -> jax.Array:
+        """(max_nodes, num_mutations) bool: the mutations allowed on each node of `m`."""
+
+    @abc.abstractmethod
+    def _apply(self, m: Morphology, node: jax.Array, mutation: jax.Array) -> Morphology:
+        """`m` after a mutation known to be valid."""
+
+    @abc.abstractmethod
+    def predefined_fitness(self, m: Morphology) -> jax.Array:
+        """() float32: the space's hand-crafted deterministic fitness."""
+
+    @property
+    @abc.abstractmethod
+    def plan(self) -> physics.BodyPlan:
+        """Static slots of the padded template."""
+
+    @abc.abstractmethod
+    def layout(self, m: Morphology) -> physics.Layout:
+        """Where the capsules of `m` lie; valid geometry for inactive slots too."""
+
+    # --- shared machinery -----------------------------------------------------------------
+
+    @property
+    def num_mutations(self) -> int:
+        return len(self.mutation_names)
+
+    @property
+    def num_actions(self) -> int:
+        return self.max_nodes * self.num_mutations
+
+    def mutate(self, m: Morphology, node, mutation) -> Morphology:
+        """Applies `mutation` to `node`; pure, jittable and vmappable.
+
+        Inside jit an out-of-range or masked action leaves `m` unchanged. Called eagerly with
+        concrete values, it raises `ValueError` for such an action instead.
+        """
+        concrete = not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((m, node, mutation)))
+        if concrete:
+            self._check_action(m, node, mutation)
+        node = jnp.asarray(node, jnp.int32)
+        mutation = jnp.asarray(mutation, jnp.int32)
+        in_range = (node >= 0) & (node < self.max_nodes) & (mutation >= 0) & (mutation < self.num_mutations)
+        node_c = jnp.clip(node, 0, self.max_nodes - 1)
+        mutation_c = jnp.clip(mutation, 0, self.num_mutations - 1)
+        valid = in_range & self.action_mask(m)[node_c, mutation_c]
+        new = self._apply(m, node_c, mutation_c)
+        return jax.tree.map(lambda a, b: jnp.where(valid, a, b), new, m)
+
+    def _check_action(self, m: Morphology, node, mutation) -> None:
+        if m.active.ndim != 1:
+            raise ValueError("mutate takes one morphology; use jax.vmap(space.mutate) for a batch")
+        node, mutation = np.asarray(node), np.asarray(mutation)
+        if node.ndim or mutation.ndim:
+            raise ValueError("mutate takes one node and one mutation; vmap it for batches")
+        if not 0 <= node < self.max_nodes:
+            raise ValueError(f"node {int(node)} is outside 0..{self.max_nodes - 1} of {self.name}")
+        if not 0 <= mutation < self.num_mutations:
+            raise ValueError(
+                f"mutation {int(mutation)} is outside 0..{self.num_mutations - 1} of {self.name} "
+                f"({', '.join(self.mutation_names)})"
+            )
+        if not bool(self.action_mask(m)[node, mutation]):
+            raise ValueError(
+                f"mutation {self.mutation_names[mutation]!r} is not allowed on node {int(node)} "
+                f"of this {self.name} morphology (see space.action_mask)"
+            )
+
+    def random_morphology(self, key: jax.Array, num_mutations: int) -> Morphology:
+        """A random walk of `num_mutations` valid mutations from m0, uniform over valid actions."""
+
+        def step(m, key):
+            mask = self.action_mask(m).reshape(-1)
+            action = jax.random.categorical(key, jnp.where(mask, 0.0, -jnp.inf))
+            return self.mutate(m, action // self.num_mutations, action % self.num_mutations), None
+
+        m, _ = jax.lax.scan(step, self.initial(), jax.random.split(key, num_mutations))
+        return m
+
+    def format(self, m: Morphology) -> str:
+        """The active tree of `m`, one limb a line."""
+        return format_tree(m, self.kind_names, self.site_names, self.attr_names)
+
+    def to_json(self, m: Morphology) -> str:
+        return json.dumps({"space": self.name, **m.to_dict()}, indent=1)
+
+    def from_json(self, text: str) -> Morphology:
+        d = json.loads(text)
+        if d.get("space") != self.name:
+            raise ValueError(f"this morphology is of space {d.get('space')!r}, not {self.name!r}")
+        if d["max_nodes"] != self.max_nodes or d["num_attrs"] != len(self.attr_names):
+            raise ValueError(
+                f"capacity {d['max_nodes']} x {d['num_attrs']} attrs does not match {self.name}'s "
+                f"{self.max_nodes} x {len(self.attr_names)}"
+            )
+        return Morphology.from_dict(d)
+
+    # --- physics --------------------------------------------------------------------------
+
+    @functools.cached_property
+    def template(self) -> mujoco.MjModel:
+        """The padded MuJoCo model holding every slot of the space."""
+        full = self.layout(self.initial())
+        full = full.replace(
+            limb_active=jnp.ones_like(full.limb_active), geom_active=jnp.ones_like(full.geom_active)
+        )
+        return physics.compile_template(self.plan, full, f"{self.name}_template")
+
+    @functools.cached_property
+    def _index(self) -> physics.TemplateIndex:
+        return physics.TemplateIndex.build(self.plan, self.template)
+
+    def mjx_template(self) -> mjx.Model:
+        """`template` on the default device, in float64 when jax_enable_x64 is on."""
+        return self._mjx_template(bool(jax.config.jax_enable_x64))
+
+    @functools.lru_cache(maxsize=2)
+    def _mjx_template(self, x64: bool) -> mjx.Model:
+        del x64  # only a cache key: put_model picks the dtype from the flag
+        return mjx.put_model(self.template)
+
+    def mjx_model(self, m: Morphology) -> mjx.Model:
+        """The template specialised to `m`: jit and vmap over `m` compile once for all bodies."""
+        return physics.specialise(self.mjx_template(), self.plan, self._index, self.layout(m))
+
+    def to_mjcf(self, m: Morphology) -> str:
+        """A standalone MJCF of `m` alone, without padding, named as in the template."""
+        if m.active.ndim != 1:
+            raise ValueError("to_mjcf takes one morphology, not a batch")
+        return physics.write_mjcf(self.plan, self.layout(m), self.name, padded=False)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(max_nodes={self.max_nodes})"
