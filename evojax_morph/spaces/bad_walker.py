@@ -102,7 +102,7 @@ class BadWalker(Space):
 
     def layout(self, m: Morphology) -> physics.Layout:
         length = m.attrs[:, 0]
-        x = jnp.asarray(SITE_X, jnp.float32)[m.site[1:]]
+        x = jnp.asarray(SITE_X)[m.site[1:]]
         zeros = jnp.zeros(3)
         feet_to = jnp.stack([jnp.zeros(3), jnp.zeros(3), -length[1:]], -1)
         half = TRUNK_LENGTH / 2

@@ -143,11 +143,12 @@ class Space(abc.ABC):
     @functools.cached_property
     def template(self) -> mujoco.MjModel:
         """The padded MuJoCo model holding every slot of the space."""
-        full = self.layout(self.initial())
-        full = full.replace(
-            limb_active=jnp.ones_like(full.limb_active), geom_active=jnp.ones_like(full.geom_active)
-        )
-        return physics.compile_template(self.plan, full, f"{self.name}_template")
+        with jax.ensure_compile_time_eval():  # may first be asked for inside a trace
+            full = self.layout(self.initial())
+            full = full.replace(
+                limb_active=jnp.ones_like(full.limb_active), geom_active=jnp.ones_like(full.geom_active)
+            )
+            return physics.compile_template(self.plan, full, f"{self.name}_template")
 
     @functools.cached_property
     def _index(self) -> physics.TemplateIndex:
@@ -160,7 +161,8 @@ class Space(abc.ABC):
     @functools.lru_cache(maxsize=2)
     def _mjx_template(self, x64: bool) -> mjx.Model:
         del x64  # only a cache key: put_model picks the dtype from the flag
-        return mjx.put_model(self.template)
+        with jax.ensure_compile_time_eval():
+            return mjx.put_model(self.template)
 
     def mjx_model(self, m: Morphology) -> mjx.Model:
         """The template specialised to `m`: jit and vmap over `m` compile once for all bodies."""

@@ -1,0 +1,190 @@
+"""The padded MJX template against MuJoCo C on the unpadded export: physics and constants."""
+
+import chex
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+import evojax_morph as em
+from evojax_morph.physics import mjx
+from evojax_morph.spaces import bad_walker as bw
+
+NUM_MORPHS = 50
+STEPS = 300
+# Documented tolerance of the equivalence in float64 (observed: below 1e-9 over 300 steps).
+QPOS_ATOL = 1e-6
+
+
+def sample_morphologies(space, n, seed=0):
+    """n random walks from m0 of assorted lengths, so bodies of every size appear."""
+    lengths = (1, 2, 3) if space.name == "bad_walker" else (2, 5, space.horizon)
+    morphs = []
+    for j, length in enumerate(lengths):
+        keys = jax.random.split(jax.random.PRNGKey(seed + j), -(-n // len(lengths)))
+        batch = jax.jit(jax.vmap(space.random_morphology, (0, None)), static_argnums=1)(keys, length)
+        morphs += em.unstack(batch)
+    return morphs[:n]
+
+
+def qpos_addresses(model, names):
+    return np.array([model.jnt_qposadr[model.joint(n).id] for n in names])
+
+
+def joint_names(ref):
+    return [ref.joint(j).name for j in range(ref.njnt)]
+
+
+@jax.jit
+def rollout(models, ctrls):
+    """(B, T, nq) qpos and qvel of B specialised models driven by (B, T, nu) controls."""
+
+    def one(model, ctrl):
+        def body(data, c):
+            data = mjx.step(model, data.replace(ctrl=c))
+            return data, (data.qpos, data.qvel)
+
+        return jax.lax.scan(body, mjx.make_data(model), ctrl)[1]
+
+    return jax.vmap(one)(models, ctrls)
+
+
+def c_rollout(ref, ctrl):
+    data = mujoco.MjData(ref)
+    out = np.zeros((len(ctrl), ref.nq))
+    for t, c in enumerate(ctrl):
+        data.ctrl[:] = c
+        mujoco.mj_step(ref, data)
+        out[t] = data.qpos
+    return out
+
+
+def test_padded_template_steps_like_mujoco_c(space):
+    """Random controls matched by actuator name, 300 steps, float64: same root and joints."""
+    with jax.enable_x64(True):
+        morphs = sample_morphologies(space, NUM_MORPHS)
+        models = jax.jit(jax.vmap(space.mjx_model))(em.stack(morphs))
+        tmpl = space.template
+        ctrls = np.random.default_rng(0).uniform(-1, 1, (NUM_MORPHS, STEPS, tmpl.nu))
+        qpos, qvel = jax.device_get(rollout(models, jnp.asarray(ctrls)))
+        # Exported in float64 too: a float32 layout would move the body by ~1e-8 m.
+        refs = [mujoco.MjModel.from_xml_string(space.to_mjcf(m)) for m in morphs]
+
+    worst = 0.0
+    for i, ref in enumerate(refs):
+        names = joint_names(ref)
+        acts = [tmpl.actuator(ref.actuator(a).name).id for a in range(ref.nu)]
+        expected = c_rollout(ref, ctrls[i][:, acts])
+        got = qpos[i][:, qpos_addresses(tmpl, names)]
+        worst = max(worst, np.abs(got - expected[:, qpos_addresses(ref, names)]).max())
+
+        # Padded joints stay exactly at rest.
+        padded = np.setdiff1d(np.arange(tmpl.nq), qpos_addresses(tmpl, names))
+        assert np.all(qpos[i][:, padded] == 0) and np.all(qvel[i][:, padded] == 0)
+    assert worst < QPOS_ATOL, worst
+    # The bodies really moved: the test is not comparing two resting models.
+    assert np.abs(qpos[:, -1, :3]).max() > 0.1
+
+
+def inertia_tensor(quat, principal):
+    rot = np.zeros(9)
+    mujoco.mju_quat2Mat(rot, quat)
+    rot = rot.reshape(3, 3)
+    return rot @ np.diag(principal) @ rot.T
+
+
+def test_derived_constants_match_the_compiler(space):
+    """Masses, inertias, invweight0, acc0 and meaninertia as MuJoCo computes them unpadded."""
+    with jax.enable_x64(True):
+        morphs = sample_morphologies(space, 20, seed=1)
+        models = jax.device_get(jax.jit(jax.vmap(space.mjx_model))(em.stack(morphs)))
+        refs = [mujoco.MjModel.from_xml_string(space.to_mjcf(m)) for m in morphs]
+    tmpl = space.template
+    for i, ref in enumerate(refs):
+        got = jax.tree.map(lambda x: x[i], models)
+        for b in range(1, ref.nbody):
+            t = tmpl.body(ref.body(b).name).id
+            np.testing.assert_allclose(got.body_mass[t], ref.body_mass[b], rtol=1e-10)
+            np.testing.assert_allclose(got.body_subtreemass[t], ref.body_subtreemass[b], rtol=1e-10)
+            np.testing.assert_allclose(got.body_pos[t], ref.body_pos[b], atol=1e-12)
+            np.testing.assert_allclose(got.body_ipos[t], ref.body_ipos[b], atol=1e-10)
+            np.testing.assert_allclose(
+                inertia_tensor(got.body_iquat[t], got.body_inertia[t]),
+                inertia_tensor(ref.body_iquat[b], ref.body_inertia[b]),
+                atol=1e-10,
+            )
+            np.testing.assert_allclose(got.body_invweight0[t], ref.body_invweight0[b], rtol=1e-8)
+        for j in range(ref.njnt):
+            t_dof = tmpl.jnt_dofadr[tmpl.joint(ref.joint(j).name).id]
+            r_dof = ref.jnt_dofadr[j]
+            np.testing.assert_allclose(got.dof_invweight0[t_dof], ref.dof_invweight0[r_dof], rtol=1e-8)
+            np.testing.assert_allclose(got.dof_M0[t_dof], ref.dof_M0[r_dof], rtol=1e-8)
+        for a in range(ref.nu):
+            t = tmpl.actuator(ref.actuator(a).name).id
+            np.testing.assert_allclose(got.actuator_acc0[t], ref.actuator_acc0[a], rtol=1e-8)
+            np.testing.assert_allclose(got.actuator_gear[t], ref.actuator_gear[a])
+        np.testing.assert_allclose(got.stat.meaninertia, ref.stat.meaninertia, rtol=1e-8)
+        for g in range(1, ref.ngeom):  # skip the floor
+            t = tmpl.geom(ref.geom(g).name).id
+            np.testing.assert_allclose(got.geom_size[t, :2], ref.geom_size[g, :2], atol=1e-12)
+            np.testing.assert_allclose(got.geom_pos[t], ref.geom_pos[g], atol=1e-12)
+            axis_got, axis_ref = np.zeros(9), np.zeros(9)
+            mujoco.mju_quat2Mat(axis_got, got.geom_quat[t])
+            mujoco.mju_quat2Mat(axis_ref, ref.geom_quat[g])
+            # A capsule is symmetric about its axis: compare the axis, up to direction.
+            assert abs(abs(axis_got[2::3] @ axis_ref[2::3]) - 1) < 1e-10
+
+
+def test_inactive_geoms_never_touch():
+    """A removed foot buried in the floor makes no contact force: qacc equals the export's."""
+    space = em.make_space("bad_walker")
+    m = space.mutate(space.initial(), bw.LONG, bw.REMOVE)
+    with jax.enable_x64(True):
+        model = jax.jit(space.mjx_model)(m)
+        ref = mujoco.MjModel.from_xml_string(space.to_mjcf(m))
+        rootz = space.template.jnt_qposadr[space.template.joint("rootz").id]
+        sink = -float(model.body_pos[1, 2]) - 0.03  # trunk 3 cm into the floor
+
+        @jax.jit
+        def forward(model, sink):
+            data = mjx.make_data(model)
+            return mjx.forward(model, data.replace(qpos=data.qpos.at[rootz].set(sink)))
+
+        data = jax.device_get(forward(model, sink))
+    contact = data._impl.contact
+    geom1 = space.template.geom("geom1").id
+    touching = (contact.geom1 == geom1) | (contact.geom2 == geom1)
+    assert touching.any() and np.all(contact.dist[touching] < 0)  # the removed foot is in the floor
+    assert np.all((contact.dist - contact.includemargin)[touching] > 0)  # but never active
+
+    ref_data = mujoco.MjData(ref)
+    ref_data.qpos[ref.jnt_qposadr[ref.joint("rootz").id]] = sink
+    mujoco.mj_forward(ref, ref_data)
+    assert ref_data.ncon > 0
+    names = joint_names(ref)
+    got = data.qacc[[space.template.jnt_dofadr[space.template.joint(n).id] for n in names]]
+    np.testing.assert_allclose(got, ref_data.qacc[[ref.jnt_dofadr[ref.joint(n).id] for n in names]], atol=1e-8)
+
+
+def test_specialise_and_step_trace_once(space):
+    """Three batches of different bodies go through one trace of specialise + step."""
+    chex.clear_trace_counter()
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def specialise_and_step(morphs):
+        models = jax.vmap(space.mjx_model)(morphs)
+        data = jax.vmap(mjx.make_data)(models)
+        return jax.vmap(mjx.step)(models, data).qpos
+
+    for seed in range(3):
+        keys = jax.random.split(jax.random.PRNGKey(seed), 4)
+        morphs = jax.vmap(space.random_morphology, (0, None))(keys, 2 + seed)
+        assert np.isfinite(np.asarray(specialise_and_step(morphs))).all()
+
+
+def test_to_mjcf_rejects_batches():
+    space = em.make_space("bad_walker")
+    with pytest.raises(ValueError, match="one morphology"):
+        space.to_mjcf(em.stack([space.initial(), space.initial()]))

@@ -1,0 +1,158 @@
+import itertools
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import evojax_morph as em
+from evojax_morph.spaces import bad_walker as bw
+from evojax_morph.spaces import constructor as cs
+
+
+def reachable(space, max_depth=10):
+    """Every morphology reachable from m0, by breadth-first search over valid actions."""
+    seen = {space.to_json(space.initial()): space.initial()}
+    frontier = [space.initial()]
+    for _ in range(max_depth):
+        nxt = []
+        for m in frontier:
+            mask = np.asarray(space.action_mask(m))
+            for node, mutation in zip(*np.nonzero(mask)):
+                child = space.mutate(m, int(node), int(mutation))
+                key = space.to_json(child)
+                if key not in seen:
+                    seen[key] = child
+                    nxt.append(child)
+        frontier = nxt
+    return list(seen.values())
+
+
+def test_registry():
+    assert em.list_spaces() == ["bad_walker", "constructor"]
+    with pytest.raises(ValueError, match="unknown space 'nope'.*bad_walker"):
+        em.make_space("nope")
+
+
+def test_random_morphologies_are_valid_trees(space):
+    for seed in range(10):
+        m = space.random_morphology(jax.random.PRNGKey(seed), 6)
+        active, parent = np.asarray(m.active), np.asarray(m.parent)
+        assert active[0] and parent[0] == -1
+        for i in np.flatnonzero(active)[1:]:
+            assert 0 <= parent[i] < i and active[parent[i]]
+        assert np.all(parent[~active] == -1)
+
+
+def test_masked_and_out_of_range_actions(space):
+    m = space.initial()
+    if np.asarray(space.action_mask(m)).all():  # Bad Walker: remove a foot to mask its row
+        m = space.mutate(m, 1, space.num_mutations - 1)
+    node, mutation = map(int, np.argwhere(~np.asarray(space.action_mask(m)))[0])
+    with pytest.raises(ValueError, match="not allowed"):
+        space.mutate(m, node, mutation)
+    with pytest.raises(ValueError, match="node 99 is outside"):
+        space.mutate(m, 99, 0)
+    with pytest.raises(ValueError, match="mutation -1 is outside"):
+        space.mutate(m, 0, -1)
+    # Inside jit the documented behaviour is a no-op.
+    mutate = jax.jit(space.mutate)
+    for n, u in [(node, mutation), (99, 0), (0, space.num_mutations)]:
+        out = mutate(m, n, u)
+        chex.assert_trees_all_equal(out, m)
+
+
+def test_vmapped_mutate_matches_loop(space):
+    keys = jax.random.split(jax.random.PRNGKey(0), 8)
+    morphs = [space.random_morphology(k, 3) for k in keys]
+    actions = []
+    for i, m in enumerate(morphs):
+        valid = np.argwhere(np.asarray(space.action_mask(m)))
+        actions.append(valid[i % len(valid)])
+    nodes, mutations = np.array(actions).T
+    batched = jax.jit(jax.vmap(space.mutate))(em.stack(morphs), nodes, mutations)
+    for i, m in enumerate(morphs):
+        chex.assert_trees_all_equal(jax.tree.map(lambda x: x[i], batched), space.mutate(m, nodes[i], mutations[i]))
+
+
+# --- Bad Walker ---------------------------------------------------------------------------
+
+
+def test_bad_walker_semantics():
+    space = em.make_space("bad_walker")
+    m0 = space.initial()
+    assert space.format(m0).count("foot") == 3
+    # Every mutation of the root is allowed and changes nothing.
+    for u in range(space.num_mutations):
+        chex.assert_trees_all_equal(space.mutate(m0, 0, u), m0)
+    # Moving a foot sets its site; removing it frees the slot for good.
+    moved = space.mutate(m0, bw.BACK, 0)
+    assert int(moved.site[bw.BACK]) == 0 and bool(moved.active[bw.BACK])
+    removed = space.mutate(moved, bw.LONG, bw.REMOVE)
+    assert not bool(removed.active[bw.LONG]) and int(removed.parent[bw.LONG]) == -1
+    assert not np.asarray(space.action_mask(removed))[bw.LONG].any()
+    assert np.asarray(space.action_mask(removed))[[0, bw.BACK, bw.FRONT]].all()
+
+
+def test_bad_walker_predefined_fitness_peaks_at_m_star():
+    space = em.make_space("bad_walker")
+    morphs = reachable(space)
+    # long foot: middle, removed or one of 4 sites (6); each short foot: removed or 4 sites (5)
+    assert len(morphs) == 6 * 5 * 5
+    fitness = np.array(jax.vmap(space.predefined_fitness)(em.stack(morphs)))
+    best = morphs[int(np.argmax(fitness))]
+    chex.assert_trees_all_equal(best, space.optimum())
+    assert np.sum(fitness == fitness.max()) == 1
+    assert fitness.max() > float(space.predefined_fitness(space.initial()))
+
+
+# --- Constructor --------------------------------------------------------------------------
+
+
+def test_constructor_semantics():
+    space = em.make_space("constructor", horizon=3)
+    m = space.initial()
+    assert int(m.num_nodes) == 1 and np.asarray(space.action_mask(m))[0].all()
+    m = space.mutate(m, 0, 4)  # leg at the stick's start
+    mask = np.asarray(space.action_mask(m))
+    assert int(m.kind[1]) == cs.LEG and int(m.parent[1]) == 0
+    assert not mask[0, 4]  # that slot is taken
+    assert not mask[1].any()  # legs are leaves
+    m = space.mutate(m, 0, 1)  # edge forward from the stick's start
+    assert int(m.kind[2]) == cs.EDGE
+    m = space.mutate(m, 2, 5)  # leg at that edge's end
+    assert int(m.num_nodes) == 4 == space.max_nodes
+    assert not np.asarray(space.action_mask(m)).any()  # full
+    assert float(space.predefined_fitness(m)) == 100.0 * (2 - 1)
+
+
+def test_constructor_capacity_follows_horizon():
+    for horizon in (1, 8):
+        space = em.make_space("constructor", horizon=horizon)
+        m = space.random_morphology(jax.random.PRNGKey(horizon), horizon)
+        assert int(m.num_nodes) == space.max_nodes == horizon + 1
+        assert not np.asarray(space.action_mask(m)).any()
+    with pytest.raises(ValueError, match="horizon"):
+        em.make_space("constructor", horizon=0)
+
+
+def test_constructor_predefined_fitness_counts_limbs():
+    space = em.make_space("constructor")
+    for seed in range(5):
+        m = space.random_morphology(jax.random.PRNGKey(seed), 8)
+        kinds = np.asarray(m.kind)[np.asarray(m.active)]
+        expected = 100.0 * (np.sum(kinds == cs.LEG) - np.sum(kinds == cs.EDGE))
+        assert float(space.predefined_fitness(m)) == expected
+
+
+def test_constructor_edges_chain_from_their_attachment_points():
+    space = em.make_space("constructor")
+    m = space.initial()
+    m = space.mutate(m, 0, 3)  # edge forward from the stick's end: x 0.5 -> 1.0
+    m = space.mutate(m, 1, 3)  # and again from that edge's end: x 1.0 -> 1.5
+    m = space.mutate(m, 2, 5)  # leg at x 1.5
+    layout = space.layout(m)
+    np.testing.assert_allclose(layout.geom_to[2, 0], 1.5, atol=1e-6)  # geom2_welded
+    np.testing.assert_allclose(layout.limb_pos[2], [1.5, 0, 0], atol=1e-6)  # node3's hip
+    assert bool(layout.limb_active[2]) and not bool(layout.limb_active[0])
