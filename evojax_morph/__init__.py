@@ -1,7 +1,29 @@
 """evojax_morph: robot morphology design as a Markov Decision Process, on JAX and MJX."""
 
+from evojax_morph import physics  # noqa: F401  (first: it imports mjx quietly)
+
+from evojax_morph.fitness import FitnessConfig, FitnessResult, evaluate, init_params
+from evojax_morph.locomotion import Locomotion, TaskConfig
 from evojax_morph.morphology import Morphology, format_tree, stack, unstack
+from evojax_morph.ppo import Params, PPOConfig, make_train
 from evojax_morph.spaces import Space, list_spaces, make_space
 
-__all__ = ["Morphology", "Space", "format_tree", "list_spaces", "make_space", "stack", "unstack"]
+__all__ = [
+    "FitnessConfig",
+    "FitnessResult",
+    "Locomotion",
+    "Morphology",
+    "PPOConfig",
+    "Params",
+    "Space",
+    "TaskConfig",
+    "evaluate",
+    "format_tree",
+    "init_params",
+    "list_spaces",
+    "make_space",
+    "make_train",
+    "stack",
+    "unstack",
+]
 __version__ = "0.1.0"

@@ -1,0 +1,118 @@
+"""Batched fitness of morphologies: `evaluate(space, morphs, key, cfg) -> FitnessResult`."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Optional
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from evojax_morph import ppo
+from evojax_morph.locomotion import TaskConfig
+from evojax_morph.morphology import Morphology
+from evojax_morph.ppo import Params, PPOConfig
+from evojax_morph.spaces import Space
+
+FITNESS_KINDS = ("ppo", "predefined")
+
+
+@dataclasses.dataclass(frozen=True)
+class FitnessConfig:
+    """Which fitness, and its budgets.
+
+    kind: "ppo" (the return of a controller trained with PPO on the body, NGE-style) or
+      "predefined" (the space's hand-crafted deterministic fitness).
+    """
+
+    kind: str = "ppo"
+    task: TaskConfig = TaskConfig()
+    ppo: PPOConfig = PPOConfig()
+
+    def __post_init__(self):
+        if self.kind not in FITNESS_KINDS:
+            raise ValueError(f"unknown fitness {self.kind!r}; choose one of {', '.join(FITNESS_KINDS)}")
+        self.ppo.validate()
+
+
+@struct.dataclass
+class FitnessResult:
+    fitness: jax.Array  # (B,) float: the fitness of each morphology
+    fitness_std: jax.Array  # (B,) float: spread across evaluation episodes (0 if deterministic)
+    diverged: jax.Array  # (B,) bool: a simulation diverged; its fitness is finite but suspect
+    params: Optional[Params]  # batched (B, ...) trained controllers; None for "predefined"
+    train_return: jax.Array  # (B,) mean over envs of the last finished training episode's return
+    entropy: jax.Array  # (B,) policy entropy per motor at the end of training
+    env_steps: int = struct.field(pytree_node=False)  # control steps spent per morphology
+
+
+@functools.lru_cache(maxsize=16)
+def _compiled(space: Space, cfg: FitnessConfig):
+    """(init, train) jitted and vmapped over morphologies; cached per space and config."""
+    init, train = ppo.make_train(space, cfg.task, cfg.ppo)
+    return jax.jit(jax.vmap(init)), jax.jit(jax.vmap(train))
+
+
+def init_params(space: Space, keys: jax.Array, cfg: FitnessConfig = FitnessConfig()) -> Params:
+    """Fresh controllers, one per key: a batch of shape (B, ...)."""
+    return _compiled(space, cfg)[0](keys)
+
+
+def evaluate(
+    space: Space,
+    morphs: Morphology,
+    key: jax.Array,
+    cfg: FitnessConfig = FitnessConfig(),
+    init_params: Optional[Params] = None,
+) -> FitnessResult:
+    """Fitness of a batch of morphologies, in one compiled call on the default backend.
+
+    Args:
+      space: the space the morphologies belong to.
+      morphs: a batch of B >= 1 morphologies (`em.stack`), arrays of shape (B, max_nodes, ...).
+      key: one PRNG key, split into one per morphology, or a (B,) array of keys: morphology i
+        then uses keys[i], so the same body with the same key gives the same result in any batch.
+      cfg: which fitness and its budgets.
+      init_params: (B, ...) controllers to start training from (a parent's, for inheritance);
+        fresh ones if None.
+    Returns:
+      A `FitnessResult` of (B,) arrays, with the trained controllers for the "ppo" fitness.
+    """
+    if morphs.active.ndim != 2 or morphs.active.shape[-1] != space.max_nodes:
+        raise ValueError(
+            f"morphs must be a batch of shape (B, {space.max_nodes}) for {space.name}; "
+            f"got active of shape {morphs.active.shape} (use em.stack([...]))"
+        )
+    batch = morphs.active.shape[0]
+    keys = _per_morphology_keys(key, batch)
+    if cfg.kind == "predefined":
+        fitness = jax.jit(jax.vmap(space.predefined_fitness))(morphs)
+        zeros = jnp.zeros_like(fitness)
+        return FitnessResult(fitness, zeros, zeros.astype(bool), init_params, zeros, zeros, env_steps=0)
+
+    init, train = _compiled(space, cfg)
+    if init_params is None:
+        init_params = init(jax.vmap(lambda k: jax.random.fold_in(k, 1))(keys))
+    out = train(keys, morphs, init_params)
+    return FitnessResult(
+        fitness=out.fitness,
+        fitness_std=out.fitness_std,
+        diverged=out.diverged,
+        params=out.params,
+        train_return=out.train_return,
+        entropy=out.entropy,
+        env_steps=ppo.env_steps_per_morphology(cfg.task, cfg.ppo),
+    )
+
+
+def _per_morphology_keys(key: jax.Array, batch: int) -> jax.Array:
+    key = jnp.asarray(key)
+    typed = jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
+    single = key.ndim == 0 if typed else key.shape == (2,)
+    if single:
+        return jax.random.split(key, batch)
+    if key.shape[0] != batch:
+        raise ValueError(f"got {key.shape[0]} keys for {batch} morphologies")
+    return key

@@ -1,0 +1,296 @@
+"""The inner PPO: one pure function trains the controller of one morphology.
+
+`make_train(space, task_cfg, ppo_cfg)` returns `init(key) -> Params` and
+`train(key, morph, params) -> TrainResult`; `jax.jit(jax.vmap(train))` trains a batch of
+different bodies, each with `num_envs` worlds, in one compiled call. It is built from brax's PPO
+parts (networks, GAE, running observation statistics); the log-probability and entropy are our
+own, masked to the motors a body has, since brax's sum over every action dimension of the
+padded template. Parameter shapes are the same for every body of a space, so a child can start
+from its parent's controller (policy inheritance).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+from brax.training import distribution
+from brax.training.acme import running_statistics
+from brax.training.agents.ppo import losses as ppo_losses
+from brax.training.agents.ppo import networks as ppo_networks
+from flax import struct
+
+from evojax_morph.locomotion import EnvState, Locomotion, TaskConfig
+from evojax_morph.morphology import Morphology
+from evojax_morph.spaces import Space
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+    """Inner PPO settings; budgets are per morphology."""
+
+    train_steps: int = 100_000  # control steps of training, over all envs
+    num_envs: int = 32  # parallel worlds per morphology
+    unroll_length: int = 20  # control steps per env between updates
+    num_minibatches: int = 4
+    update_epochs: int = 8
+    learning_rate: float = 1e-3
+    discount: float = 0.97
+    gae_lambda: float = 0.95
+    clip_eps: float = 0.3
+    entropy_cost: float = 1e-2
+    vf_coef: float = 0.5
+    max_grad_norm: float = 1.0
+    reward_scaling: float = 1.0
+    normalize_observations: bool = True
+    policy_hidden: tuple[int, ...] = (32, 32)
+    value_hidden: tuple[int, ...] = (64, 64)
+    eval_episodes: int = 4  # deterministic episodes of episode_length after training
+
+    @property
+    def num_updates(self) -> int:
+        return max(1, self.train_steps // (self.num_envs * self.unroll_length))
+
+    def validate(self) -> None:
+        batch = self.num_envs * self.unroll_length
+        if self.train_steps < 0 or self.num_envs < 1 or self.unroll_length < 1:
+            raise ValueError("train_steps must be >= 0, num_envs and unroll_length >= 1")
+        if batch % self.num_minibatches:
+            raise ValueError(f"num_envs x unroll_length ({batch}) must divide into {self.num_minibatches} minibatches")
+        if self.eval_episodes < 1:
+            raise ValueError("eval_episodes must be at least 1")
+
+
+class Params(NamedTuple):
+    """A controller: what a child inherits from its parent."""
+
+    normalizer: running_statistics.RunningStatisticsState
+    policy: dict
+    value: dict
+
+
+class Transition(NamedTuple):
+    obs: jax.Array  # (T, E, obs_size)
+    raw_action: jax.Array  # (T, E, A) pre-tanh
+    log_prob: jax.Array  # (T, E)
+    reward: jax.Array  # (T, E)
+    terminated: jax.Array  # (T, E) float
+    truncated: jax.Array  # (T, E) float
+    diverged: jax.Array  # (T, E) bool
+
+
+@struct.dataclass
+class TrainResult:
+    params: Params  # the trained controller
+    fitness: jax.Array  # (): mean return of the deterministic evaluation episodes
+    fitness_std: jax.Array  # (): their standard deviation
+    diverged: jax.Array  # () bool: some simulation diverged (its reward was zeroed)
+    train_return: jax.Array  # (): mean over envs of each env's last finished training episode
+    entropy: jax.Array  # (): policy entropy per active motor at the end of training
+
+
+def masked_log_prob(dist: distribution.NormalTanhDistribution, logits, raw_action, mask):
+    """log pi(a) summed over the active action dimensions only.
+
+    Args:
+      dist: brax's tanh-normal action distribution.
+      logits: (..., 2A) policy output.
+      raw_action: (..., A) pre-tanh action.
+      mask: (A,) bool, the motors the body has.
+    Returns:
+      (...,) log-probability of tanh(raw_action).
+    """
+    per_dim = dist.create_dist(logits).log_prob(raw_action)
+    per_dim -= distribution.TanhBijector().forward_log_det_jacobian(raw_action)
+    return jnp.sum(jnp.where(mask, per_dim, 0.0), axis=-1)
+
+
+def masked_entropy(dist: distribution.NormalTanhDistribution, logits, key, mask):
+    """Entropy of the tanh-normal over active dimensions, estimated with one sample as brax does."""
+    normal = dist.create_dist(logits)
+    per_dim = normal.entropy() + distribution.TanhBijector().forward_log_det_jacobian(normal.sample(key))
+    return jnp.sum(jnp.where(mask, per_dim, 0.0), axis=-1)
+
+
+def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig = PPOConfig()):
+    """Returns `(init, train)` for the space's locomotion task; see the module docstring."""
+    cfg.validate()
+    env = Locomotion(space, task_cfg)
+    networks = ppo_networks.make_ppo_networks(
+        env.obs_size,
+        env.action_size,
+        preprocess_observations_fn=running_statistics.normalize
+        if cfg.normalize_observations
+        else (lambda obs, _: obs),
+        policy_hidden_layer_sizes=cfg.policy_hidden,
+        value_hidden_layer_sizes=cfg.value_hidden,
+    )
+    dist = networks.parametric_action_distribution
+    policy_apply = networks.policy_network.apply
+    value_apply = networks.value_network.apply
+    optimizer = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate))
+    num_envs, horizon = cfg.num_envs, cfg.unroll_length
+    minibatch = num_envs * horizon // cfg.num_minibatches
+
+    def init(key: jax.Array) -> Params:
+        key_policy, key_value = jax.random.split(key)
+        obs_spec = jax.ShapeDtypeStruct((env.obs_size,), jnp.zeros(()).dtype)
+        return Params(
+            normalizer=running_statistics.init_state(obs_spec),
+            policy=networks.policy_network.init(key_policy),
+            value=networks.value_network.init(key_value),
+        )
+
+    def loss_fn(net, normalizer, batch, advantages, targets, mask, key):
+        logits = policy_apply(normalizer, net["policy"], batch.obs)
+        log_prob = masked_log_prob(dist, logits, batch.raw_action, mask)
+        ratio = jnp.exp(log_prob - batch.log_prob)
+        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+        clipped = jnp.clip(ratio, 1 - cfg.clip_eps, 1 + cfg.clip_eps)
+        policy_loss = -jnp.mean(jnp.minimum(ratio * advantages, clipped * advantages))
+        value = value_apply(normalizer, net["value"], batch.obs)
+        value_loss = jnp.mean((targets - value) ** 2)
+        entropy = jnp.mean(masked_entropy(dist, logits, key, mask))
+        loss = policy_loss + cfg.vf_coef * value_loss - cfg.entropy_cost * entropy
+        return loss, entropy
+
+    def train(key: jax.Array, morph: Morphology, params: Params) -> TrainResult:
+        model = space.mjx_model(morph)
+        mask = env.action_mask(model)
+        num_active = jnp.maximum(mask.sum(), 1)
+        reset = jax.vmap(env.reset, (0, None))
+        step = jax.vmap(env.step, (None, 0, 0))
+
+        key, key_reset = jax.random.split(key)
+        first = reset(jax.random.split(key_reset, num_envs), model)
+        net = {"policy": params.policy, "value": params.value}
+        opt_state = optimizer.init(net)
+
+        def update(carry, _):
+            normalizer, net, opt_state, state, episode_return, last_return, key = carry
+
+            # COLLECT TRAJECTORIES
+            def env_step(carry, _):
+                state, episode_return, last_return, key = carry
+                key, key_act = jax.random.split(key)
+                logits = policy_apply(normalizer, net["policy"], state.obs)
+                raw = dist.sample_no_postprocessing(logits, key_act)
+                nxt = step(model, state, dist.postprocess(raw))
+                episode_return = episode_return + nxt.reward
+                transition = Transition(
+                    obs=state.obs,
+                    raw_action=raw,
+                    log_prob=masked_log_prob(dist, logits, raw, mask),
+                    reward=nxt.reward,
+                    terminated=nxt.terminated.astype(nxt.reward.dtype),
+                    truncated=nxt.truncated.astype(nxt.reward.dtype),
+                    diverged=nxt.diverged,
+                )
+                last_return = jnp.where(nxt.done, episode_return, last_return)
+                # AUTO-RESET to each world's own first state
+                nxt = jax.tree.map(
+                    lambda a, b: jnp.where(nxt.done.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), first, nxt
+                )
+                episode_return = jnp.where(nxt.steps == 0, 0.0, episode_return)
+                return (nxt, episode_return, last_return, key), transition
+
+            (state, episode_return, last_return, key), traj = jax.lax.scan(
+                env_step, (state, episode_return, last_return, key), length=horizon
+            )
+
+            # ADVANTAGES (brax's GAE; the value of a truncated step is bootstrapped)
+            if cfg.normalize_observations:
+                normalizer = running_statistics.update(normalizer, traj.obs)
+            values = value_apply(normalizer, net["value"], traj.obs)
+            bootstrap = value_apply(normalizer, net["value"], state.obs)
+            targets, advantages = ppo_losses.compute_gae(
+                truncation=traj.truncated,
+                termination=traj.terminated,
+                rewards=traj.reward * cfg.reward_scaling,
+                values=values,
+                bootstrap_value=bootstrap,
+                lambda_=cfg.gae_lambda,
+                discount=cfg.discount,
+            )
+
+            # UPDATE NETWORK: epochs x minibatches over the flattened (T x E) samples
+            flat = lambda x: x.reshape((num_envs * horizon,) + x.shape[2:])  # noqa: E731
+            samples = jax.tree.map(flat, (traj, advantages, targets))
+
+            def epoch(carry, key):
+                net, opt_state = carry
+                key_perm, key_loss = jax.random.split(key)
+                perm = jax.random.permutation(key_perm, num_envs * horizon)
+                shuffled = jax.tree.map(lambda x: x[perm].reshape((cfg.num_minibatches, minibatch) + x.shape[1:]), samples)
+
+                def sgd(carry, batch):
+                    net, opt_state = carry
+                    (transition, adv, tgt), key = batch
+                    grads, entropy = jax.grad(loss_fn, has_aux=True)(net, normalizer, transition, adv, tgt, mask, key)
+                    updates, opt_state = optimizer.update(grads, opt_state)
+                    return (optax.apply_updates(net, updates), opt_state), entropy
+
+                keys = jax.random.split(key_loss, cfg.num_minibatches)
+                (net, opt_state), entropy = jax.lax.scan(sgd, (net, opt_state), (shuffled, keys))
+                return (net, opt_state), entropy.mean()
+
+            key, key_epochs = jax.random.split(key)
+            (net, opt_state), entropy = jax.lax.scan(
+                epoch, (net, opt_state), jax.random.split(key_epochs, cfg.update_epochs)
+            )
+            metrics = {
+                "return": last_return.mean(),
+                "entropy": entropy.mean() / num_active,
+                "diverged": traj.diverged.any(),
+            }
+            return (normalizer, net, opt_state, state, episode_return, last_return, key), metrics
+
+        zeros = jnp.zeros(num_envs, first.reward.dtype)
+        carry = (params.normalizer, net, opt_state, first, zeros, zeros, key)
+        steps = cfg.num_updates if cfg.train_steps else 0
+        (normalizer, net, _, _, _, _, key), metrics = jax.lax.scan(update, carry, length=steps)
+        params = Params(normalizer=normalizer, policy=net["policy"], value=net["value"])
+
+        # EVALUATE: deterministic policy, eval_episodes episodes from fresh resets
+        returns, eval_diverged = evaluate(key, model, params)
+        diverged = eval_diverged.any() | (metrics["diverged"].any() if steps else False)
+        last = lambda name: metrics[name][-1] if steps else jnp.zeros(())  # noqa: E731
+        return TrainResult(
+            params=params,
+            fitness=jnp.nan_to_num(returns.mean()),
+            fitness_std=jnp.nan_to_num(returns.std()),
+            diverged=diverged,
+            train_return=last("return"),
+            entropy=last("entropy"),
+        )
+
+    def evaluate(key, model, params: Params):
+        """(eval_episodes,) returns of the deterministic policy, and whether each diverged."""
+        state = jax.vmap(env.reset, (0, None))(jax.random.split(key, cfg.eval_episodes), model)
+        step = jax.vmap(env.step, (None, 0, 0))
+
+        def body(carry, _):
+            state, returns, alive, diverged = carry
+            logits = policy_apply(params.normalizer, params.policy, state.obs)
+            state = step(model, state, dist.mode(logits))
+            returns = returns + jnp.where(alive, state.reward, 0.0)
+            diverged = diverged | (alive & state.diverged)
+            return (state, returns, alive & ~state.done, diverged), None
+
+        zeros = jnp.zeros(cfg.eval_episodes, state.reward.dtype)
+        alive = jnp.ones(cfg.eval_episodes, bool)
+        (_, returns, _, diverged), _ = jax.lax.scan(
+            body, (state, zeros, alive, ~alive), length=task_cfg.episode_length
+        )
+        return returns, diverged
+
+    return init, train
+
+
+def env_steps_per_morphology(task_cfg: TaskConfig, cfg: PPOConfig) -> int:
+    """Control steps one `train` call takes per morphology: training plus evaluation."""
+    train = cfg.num_updates * cfg.num_envs * cfg.unroll_length if cfg.train_steps else 0
+    return train + cfg.eval_episodes * task_cfg.episode_length

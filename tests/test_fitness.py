@@ -1,0 +1,172 @@
+"""Batched NGE fitness: learning, inheritance, batching, and the masked PPO pieces."""
+
+import dataclasses
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from brax.training import distribution
+from brax.training.agents.ppo import losses as ppo_losses
+
+import evojax_morph as em
+from evojax_morph import ppo
+from evojax_morph.spaces import bad_walker as bw
+
+# One small budget for every test that trains, so the suite compiles PPO once per batch size,
+# and one that only evaluates the controller it is given.
+CFG = em.FitnessConfig(ppo=em.PPOConfig(train_steps=40_000, num_envs=16, unroll_length=20))
+EVAL_ONLY = em.FitnessConfig(ppo=dataclasses.replace(CFG.ppo, train_steps=0))
+SEEDS = 3
+
+
+@pytest.fixture(scope="module")
+def walker():
+    return em.make_space("bad_walker")
+
+
+def footless(space):
+    m = space.initial()
+    for foot in (bw.LONG, bw.BACK, bw.FRONT):
+        m = space.mutate(m, foot, bw.REMOVE)
+    return m
+
+
+@pytest.fixture(scope="module")
+def trained(walker):
+    """Generation 1: three seeds of m* from scratch, a body with no motor, and a child body.
+
+    Generation 2: the child trained from each parent's controller, and from scratch, same budget.
+    Both generations go through one jitted, vmapped `train`, traced once (jit-once check).
+    """
+    chex.clear_trace_counter()
+    init, train = ppo.make_train(walker, CFG.task, CFG.ppo)
+    train = jax.jit(jax.vmap(chex.assert_max_traces(train, n=1)))
+    child = walker.mutate(walker.optimum(), bw.FRONT, 2)  # front foot one site inward
+    keys = jax.random.split(jax.random.PRNGKey(0), 2 * SEEDS)
+    fresh = jax.jit(jax.vmap(init))(keys)
+
+    gen1 = em.stack([walker.optimum()] * SEEDS + [footless(walker)] + [child] * (SEEDS - 1))
+    out1 = train(keys, gen1, fresh)
+    inherited = jax.tree.map(lambda p: jnp.concatenate([p[:SEEDS], p[:SEEDS]]), out1.params)
+    fresh_half = jax.tree.map(lambda a, b: jnp.concatenate([a[:SEEDS], b[SEEDS:]]), inherited, fresh)
+    gen2 = em.stack([child] * (2 * SEEDS))
+    out2 = train(jax.random.split(jax.random.PRNGKey(1), 2 * SEEDS), gen2, fresh_half)
+    return gen1, keys, out1, out2, fresh
+
+
+def zero_controller(params):
+    """The same controllers with a zeroed policy: its mean action, tanh(0), is 0 everywhere."""
+    return params._replace(policy=jax.tree.map(jnp.zeros_like, params.policy))
+
+
+def test_m_star_learns_to_walk(walker, trained):
+    _, keys, out1, _, fresh = trained
+    pick = lambda tree: jax.tree.map(lambda x: x[:SEEDS], tree)  # noqa: E731
+    morphs = em.stack([walker.optimum()] * SEEDS)
+    zero = em.evaluate(walker, morphs, keys[:SEEDS], EVAL_ONLY, zero_controller(pick(fresh))).fitness
+    zero = np.asarray(zero)
+    learned = np.asarray(out1.fitness[:SEEDS])
+    # 50 = 1 m further in 5 s than standing still, in every seed.
+    assert np.all(learned > zero + 50), (learned, zero)
+    assert np.all(np.isfinite(np.asarray(out1.fitness))) and not np.asarray(out1.diverged).any()
+
+
+def test_no_motor_no_fitness(trained):
+    _, _, out1, _, _ = trained
+    assert abs(float(out1.fitness[SEEDS])) < 1.0  # a trunk alone cannot move itself
+
+
+def test_inherited_controller_beats_scratch(trained):
+    _, _, _, out2, _ = trained
+    inherited, scratch = np.asarray(out2.fitness[:SEEDS]), np.asarray(out2.fitness[SEEDS:])
+    assert inherited.mean() > scratch.mean() + 20, (inherited, scratch)
+
+
+def test_batch_equals_one_at_a_time(walker, trained):
+    """Each body of a batch gets what it would get alone with the same key and controller.
+
+    Compared on evaluation of untrained controllers (physics, task and policy under vmap).
+    Training and trained gaits amplify float rounding too much to compare: Adam's first steps
+    move every weight by about the learning rate whatever the size of its gradient, so sign
+    flips of near-zero gradients under a different reduction order become visible, and a
+    walking gait can turn a 1e-7 difference into a fall.
+    """
+    gen1, keys, _, _, fresh = trained
+    batch = em.evaluate(walker, gen1, keys, EVAL_ONLY, fresh)
+    for i in (0, SEEDS, 2 * SEEDS - 1):
+        pick = lambda tree: jax.tree.map(lambda x: x[i : i + 1], tree)  # noqa: E731, B023
+        one = em.evaluate(walker, pick(gen1), keys[i : i + 1], EVAL_ONLY, init_params=pick(fresh))
+        np.testing.assert_allclose(one.fitness[0], batch.fitness[i], rtol=1e-2, atol=0.05)
+        np.testing.assert_allclose(one.fitness_std[0], batch.fitness_std[i], rtol=1e-2, atol=0.05)
+    assert len(set(np.round(np.asarray(batch.fitness), 3))) > 2  # different bodies, different results
+
+
+def test_evaluate_api(walker):
+    morphs = em.stack([walker.initial(), walker.optimum()])
+    pre = em.evaluate(walker, morphs, jax.random.PRNGKey(0), em.FitnessConfig(kind="predefined"))
+    np.testing.assert_allclose(pre.fitness, [walker.predefined_fitness(m) for m in em.unstack(morphs)])
+    assert pre.params is None and not pre.diverged.any()
+    with pytest.raises(ValueError, match="batch of shape"):
+        em.evaluate(walker, walker.initial(), jax.random.PRNGKey(0), CFG)
+    with pytest.raises(ValueError, match="2 keys for 3"):
+        em.evaluate(walker, em.stack([walker.initial()] * 3), jax.random.split(jax.random.PRNGKey(0), 2), CFG)
+    with pytest.raises(ValueError, match="unknown fitness"):
+        em.FitnessConfig(kind="tame?")
+    with pytest.raises(ValueError, match="minibatches"):
+        em.PPOConfig(num_envs=3, unroll_length=3, num_minibatches=4).validate()
+
+
+# --- masked PPO pieces against Python loops ------------------------------------------------
+
+
+def test_masked_log_prob_matches_a_loop():
+    rng = np.random.default_rng(0)
+    dist = distribution.NormalTanhDistribution(event_size=4)
+    logits = rng.normal(size=(5, 8)).astype(np.float32)
+    raw = rng.normal(size=(5, 4)).astype(np.float32)
+    mask = np.array([True, False, True, False])
+    got = np.asarray(ppo.masked_log_prob(dist, jnp.asarray(logits), jnp.asarray(raw), jnp.asarray(mask)))
+    for b in range(5):
+        total = 0.0
+        for a in range(4):
+            if not mask[a]:
+                continue
+            loc, scale = logits[b, a], np.log1p(np.exp(logits[b, 4 + a])) + 0.001  # softplus + min_std
+            normal = -0.5 * ((raw[b, a] - loc) / scale) ** 2 - np.log(scale) - 0.5 * np.log(2 * np.pi)
+            total += normal - np.log(1 - np.tanh(raw[b, a]) ** 2)  # change of variables for tanh
+        np.testing.assert_allclose(got[b], total, rtol=1e-4, atol=1e-4)
+    # Masked dimensions do not matter at all.
+    other = raw.copy()
+    other[:, ~mask] += 5.0
+    np.testing.assert_array_equal(got, ppo.masked_log_prob(dist, jnp.asarray(logits), jnp.asarray(other), jnp.asarray(mask)))
+
+
+def test_gae_with_termination_and_truncation_matches_a_loop():
+    rng = np.random.default_rng(1)
+    steps, envs, gamma, lam = 7, 3, 0.9, 0.8
+    rewards = rng.normal(size=(steps, envs))
+    values = rng.normal(size=(steps, envs))
+    bootstrap = rng.normal(size=envs)
+    terminated = np.zeros((steps, envs))
+    truncated = np.zeros((steps, envs))
+    terminated[2, 0] = terminated[5, 1] = 1
+    truncated[3, 2] = 1
+    targets, adv = ppo_losses.compute_gae(
+        truncation=jnp.asarray(truncated), termination=jnp.asarray(terminated), rewards=jnp.asarray(rewards),
+        values=jnp.asarray(values), bootstrap_value=jnp.asarray(bootstrap), lambda_=lam, discount=gamma,
+    )
+    expected = np.zeros((steps, envs))
+    for e in range(envs):
+        acc = 0.0
+        for t in reversed(range(steps)):
+            next_value = bootstrap[e] if t == steps - 1 else values[t + 1, e]
+            if truncated[t, e]:  # the step that hit the time limit teaches nothing; restart the sum
+                acc = 0.0
+                continue
+            delta = rewards[t, e] + gamma * (1 - terminated[t, e]) * next_value - values[t, e]
+            acc = delta + gamma * lam * (1 - terminated[t, e]) * acc
+            expected[t, e] = acc
+    np.testing.assert_allclose(np.asarray(targets) - values, expected, rtol=1e-5, atol=1e-5)
+    assert np.all(np.asarray(adv)[truncated == 1] == 0)
