@@ -55,6 +55,26 @@ def _compiled(space: Space, cfg: FitnessConfig):
     return jax.jit(jax.vmap(init)), jax.jit(jax.vmap(train))
 
 
+def make_fitness_fn(space: Space, cfg: FitnessConfig):
+    """`(init, fitness)`, pure and jittable, for use inside a larger jitted loop.
+
+    init(key) -> params of one controller (a dummy scalar for the predefined fitness);
+    fitness(keys (B,), morphs (B, ...), params (B, ...)) -> (fitness (B,), params (B, ...)):
+    the PPO fitness trains each body starting from the given controller (inheritance).
+    """
+    if cfg.kind == "predefined":
+        return (lambda key: jnp.zeros(())), (
+            lambda keys, morphs, params: (jax.vmap(space.predefined_fitness)(morphs), params)
+        )
+    init, train = ppo.make_train(space, cfg.task, cfg.ppo)
+
+    def fitness(keys, morphs, params):
+        out = jax.vmap(train)(keys, morphs, params)
+        return out.fitness, out.params
+
+    return init, fitness
+
+
 def init_params(space: Space, keys: jax.Array, cfg: FitnessConfig = FitnessConfig()) -> Params:
     """Fresh controllers, one per key: a batch of shape (B, ...)."""
     return _compiled(space, cfg)[0](keys)

@@ -1,30 +1,256 @@
-"""`python -m evojax_morph.run --space NAME`: evolve a morphology with a learning agent.
+"""Evolve a robot body with a learning agent: `python -m evojax_morph.run --space bad_walker`.
 
-The evolution loop (agent, batched fitness) is still to come; for now this command checks the
-space, builds its padded physics and shows the morphology evolution would start from.
+Each environment step mutates the body of every parallel evolution once and evaluates all the
+children in one batched fitness call; the agent learns which mutations raise fitness. The run
+directory gets config.json, metrics.csv, TensorBoard events (tb/), curve.png, trajectory.png,
+best.xml, summary.json and Orbax checkpoints; --resume continues a run from its last checkpoint.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+import dataclasses
+import json
+import os
 import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
 
 import evojax_morph as em
+from evojax_morph import plots
+from evojax_morph.agents import dqn
+from evojax_morph.evolution import EvolutionEnv
+from evojax_morph.fitness import make_fitness_fn
+
+FITNESS_SCALE = {"ppo": 100.0}  # typical fitness magnitude; rewards are divided by it
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """Everything that defines a run; saved as config.json, reloaded by --resume."""
+
+    space: str = "bad_walker"
+    fitness: str = "ppo"  # ppo | predefined
+    agent: str = "ddqn"
+    steps: int = 40  # environment steps; each mutates every parallel evolution once
+    seed: int = 0
+    num_envs: int = 4  # parallel evolutions, each step's fitness batch
+    horizon: int = 0  # mutations per episode; 0 picks the space's default
+    train_steps: int = 10_000  # PPO control steps per fitness evaluation
+    hidden: int = 64  # GNN width
+    chunk: int = 5  # environment steps per jitted call
+    checkpoint_every: int = 1  # chunks between checkpoints
+
+    def resolved_horizon(self) -> int:
+        if self.horizon:
+            return self.horizon
+        return em.make_space(self.space).max_nodes - 1 if self.space == "constructor" else 4
+
+
+def gpu_defaults() -> dict:
+    """On a GPU the same command evaluates a larger batch with a longer PPO budget."""
+    return {"num_envs": 256, "train_steps": 50_000, "steps": 100, "chunk": 10, "checkpoint_every": 2}
+
+
+def build(cfg: RunConfig):
+    space = em.make_space(cfg.space)
+    fit_cfg = em.FitnessConfig(
+        kind=cfg.fitness, ppo=em.PPOConfig(train_steps=cfg.train_steps, num_envs=16, unroll_length=20)
+    )
+    init_fn, fitness_fn = make_fitness_fn(space, fit_cfg)
+    horizon = cfg.resolved_horizon()
+    env = EvolutionEnv(space, fitness_fn, init_fn, horizon=horizon, num_envs=cfg.num_envs)
+    scale = FITNESS_SCALE.get(cfg.fitness, space.fitness_scale)
+    agent_cfg = dqn.DQNConfig(
+        hidden=cfg.hidden,
+        epsilon_steps=max(1, cfg.steps // 2),
+        learning_starts=min(64, cfg.num_envs * max(1, cfg.steps // 4)),
+        batch_size=32,
+        reward_scale=1.0 / scale,
+    )
+    init, chunk, q_fn = dqn.make_agent(env, agent_cfg)
+    greedy_env = dataclasses.replace(env, num_envs=1)
+    return space, env, greedy_env, init, chunk, q_fn
+
+
+def greedy_rollout(space, env1: EvolutionEnv, q_fn, params, key):
+    """From m0, the agent's greedy mutation at each step, with every body's fitness."""
+
+    @jax.jit
+    def run(params, key):
+        key_reset, key = jax.random.split(key)
+        obs, evo = env1.reset(key_reset)
+
+        def body(carry, key):
+            obs, evo = carry
+            action = dqn.masked_argmax(q_fn(params, obs), obs.mask)
+            obs, evo, *_ = env1.step(key, evo, action)
+            return (obs, evo), (evo.morph, evo.fitness[0], action[0])
+
+        _, (morphs, fitness, actions) = jax.lax.scan(body, (obs, evo), jax.random.split(key, env1.horizon))
+        return evo.morph, evo.fitness[0], morphs, fitness, actions
+
+    m0, f0, morphs, fitness, actions = jax.device_get(run(params, key))
+    seq = [jax.tree.map(lambda x: x[0], m0)] + [jax.tree.map(lambda x, i=i: x[i, 0], morphs) for i in range(env1.horizon)]
+    names = [f"node {a // space.num_mutations}: {space.mutation_names[a % space.num_mutations]}" for a in actions]
+    return seq, [float(f0)] + [float(f) for f in fitness], names
+
+
+def checkpoint_manager(out: Path):
+    import orbax.checkpoint as ocp
+
+    options = ocp.CheckpointManagerOptions(max_to_keep=2, create=True)
+    return ocp, ocp.CheckpointManager(out.resolve() / "checkpoints", options=options)
+
+
+def parse(argv) -> tuple[RunConfig, Path, bool]:
+    parser = argparse.ArgumentParser(
+        prog="python -m evojax_morph.run", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    gpu = jax.default_backend() == "gpu"
+    defaults = dataclasses.replace(RunConfig(), **gpu_defaults()) if gpu else RunConfig()
+    add = parser.add_argument
+    add("--space", default=defaults.space, help=f"morphology space: {', '.join(em.list_spaces())}")
+    add("--fitness", default=defaults.fitness, choices=["ppo", "predefined"],
+        help="ppo: return of a controller trained with PPO on the body (inherited from the parent); "
+        "predefined: the space's hand-crafted fitness")
+    add("--agent", default=defaults.agent, choices=["ddqn"], help="the agent choosing mutations")
+    add("--steps", type=int, default=defaults.steps, help="environment steps; each mutates every parallel evolution once")
+    add("--seed", type=int, default=defaults.seed, help="seed of every random choice of the run")
+    add("--out", default=None, help="run directory (default runs/SPACE-FITNESS-seedS)")
+    add("--resume", action="store_true", help="continue the run in --out from its last checkpoint, up to --steps")
+    add("--num-envs", type=int, default=defaults.num_envs, help="parallel evolutions: the fitness batch of a step")
+    add("--horizon", type=int, default=defaults.horizon, help="mutations per episode (0: 4 for bad_walker, the capacity for constructor)")
+    add("--train-steps", type=int, default=defaults.train_steps, help="PPO control steps per fitness evaluation")
+    add("--hidden", type=int, default=defaults.hidden, help="width of the GNN Q-network")
+    add("--chunk", type=int, default=defaults.chunk, help="environment steps per jitted call (progress and checkpoint granularity)")
+    add("--checkpoint-every", type=int, default=defaults.checkpoint_every, help="chunks between checkpoints")
+    args = parser.parse_args(argv)
+
+    if args.space not in em.list_spaces():
+        parser.error(f"unknown space {args.space!r}; known spaces: {', '.join(em.list_spaces())}")
+    for name in ("steps", "num_envs", "train_steps", "hidden", "chunk", "checkpoint_every"):
+        if getattr(args, name) < (0 if name == "train_steps" else 1):
+            parser.error(f"--{name.replace('_', '-')} must be positive, got {getattr(args, name)}")
+    if args.horizon < 0:
+        parser.error("--horizon must be >= 0")
+    cfg = RunConfig(
+        space=args.space, fitness=args.fitness, agent=args.agent, steps=args.steps, seed=args.seed,
+        num_envs=args.num_envs, horizon=args.horizon, train_steps=args.train_steps, hidden=args.hidden,
+        chunk=args.chunk, checkpoint_every=args.checkpoint_every,
+    )
+    out = Path(args.out or f"runs/{cfg.space}-{cfg.fitness}-seed{cfg.seed}")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".write_test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as e:
+        parser.error(f"cannot write to --out {str(out)!r}: {e.strerror or e}")
+    saved = out / "config.json"
+    if args.resume:
+        if not saved.exists():
+            parser.error(f"--resume: no run in {str(out)!r} (no config.json)")
+        cfg = dataclasses.replace(RunConfig(**json.loads(saved.read_text())), steps=args.steps)
+    elif (out / "checkpoints").exists():
+        parser.error(f"{str(out)!r} already holds a run: pass --resume to continue it, or another --out")
+    return cfg, out, args.resume
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m evojax_morph.run", description=__doc__)
-    parser.add_argument("--space", required=True, help=f"morphology space: {', '.join(em.list_spaces())}")
-    args = parser.parse_args(argv)
-    if args.space not in em.list_spaces():
-        parser.error(f"unknown space {args.space!r}; known spaces: {', '.join(em.list_spaces())}")
-    space = em.make_space(args.space)
-    t = space.template
-    print(f"space {space.name}: {space.max_nodes} nodes x {space.num_mutations} mutations")
-    print(f"padded template: {t.nbody - 1} bodies, {t.ngeom - 1} capsules, {t.nv} dofs, {t.nu} motors")
-    print("m0:")
-    print(space.format(space.initial()))
-    print("not yet: the evolution agent and the PPO fitness are not built yet (see the issues).")
+    cfg, out, resume = parse(argv)
+    jax.config.update("jax_default_matmul_precision", "highest")
+    (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
+    space, env, greedy_env, init, chunk_fn, q_fn = build(cfg)
+    ocp, manager = checkpoint_manager(out)
+    print(f"evojax_morph: {cfg.agent} on {cfg.space} with {cfg.fitness} fitness, {cfg.num_envs} parallel "
+          f"evolutions x {cfg.steps} steps, horizon {env.horizon}, on {jax.default_backend()}; run in {out}")
+
+    key = jax.random.PRNGKey(cfg.seed)
+    key_init, key_greedy = jax.random.split(key)
+    rows = []
+    if resume and manager.latest_step() is not None:
+        step = manager.latest_step()
+        abstract = jax.eval_shape(init, key_init)
+        state = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract)))["state"]
+        with open(out / "metrics.csv") as f:
+            rows = [r for r in csv.DictReader(f) if int(r["step"]) <= step]
+        print(f"resumed at step {step}")
+    else:
+        print("evaluating m0 in every evolution...")
+        state = jax.jit(init)(key_init)
+        step = 0
+
+    from tensorboardX import SummaryWriter
+    from tqdm import tqdm
+
+    writer = SummaryWriter(str(out / "tb"))
+    bar = tqdm(total=cfg.steps, initial=min(step, cfg.steps), unit="step", dynamic_ncols=True, file=sys.stdout)
+    chunks_done = 0
+    while step < cfg.steps:
+        n = min(cfg.chunk, cfg.steps - step)
+        state, metrics = chunk_fn(state, n)
+        metrics = jax.device_get(metrics)
+        for i in range(n):
+            reward = metrics["reward"][i]
+            row = {
+                "step": step + i + 1,
+                "reward_median": float(np.median(reward)),
+                "reward_q25": float(np.quantile(reward, 0.25)),
+                "reward_q75": float(np.quantile(reward, 0.75)),
+                "fitness_mean": float(np.mean(metrics["fitness"][i])),
+                "epsilon": float(metrics["epsilon"][i]),
+                "loss": float(metrics["loss"][i]),
+                "best_fitness": float(metrics["best_fitness"][i]),
+            }
+            rows.append(row)
+            for name, value in row.items():
+                if name != "step":
+                    writer.add_scalar(name.replace("_", "/", 1), value, row["step"])
+        step += n
+        chunks_done += 1
+        bar.update(n)
+        bar.set_postfix(eps=f"{row['epsilon']:.2f}", reward=f"{row['reward_median']:.3g}", best=f"{row['best_fitness']:.3g}")
+        with open(out / "metrics.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+        if chunks_done % cfg.checkpoint_every == 0 or step >= cfg.steps:
+            manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state)))
+    bar.close()
+    manager.wait_until_finished()
+    writer.close()
+
+    # RESULTS
+    best = jax.device_get(state.best_morph)
+    morphs, fitness, actions = greedy_rollout(space, greedy_env, q_fn, state.params, key_greedy)
+    steps_arr = np.array([r["step"] for r in rows])
+    col = lambda name: np.array([r[name] for r in rows], float)  # noqa: E731
+    plots.plot_curve(out / "curve.png", steps_arr, col("reward_median"), col("reward_q25"), col("reward_q75"))
+    plots.plot_trajectory(out / "trajectory.png", space, morphs, fitness, actions)
+    (out / "best.xml").write_text(space.to_mjcf(best))
+    summary = {
+        "best_fitness": float(state.best_fitness),
+        "best_morphology": best.to_dict(),
+        "greedy_trajectory": [
+            {"action": a, "fitness": f, "morphology": m.to_dict()}
+            for a, f, m in zip(["m0"] + actions, fitness, morphs)
+        ],
+        "env_steps": step,
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    print(f"\nbest morphology (fitness {float(state.best_fitness):.4g}):")
+    print(space.format(best))
+    print("\ngreedy trajectory from m0:")
+    for a, f in zip(["m0"] + actions, fitness):
+        print(f"  {a:<32} fitness {f:.4g}")
+    print(f"\nfinal greedy morphology:\n{space.format(morphs[-1])}")
+    print(f"\nwrote {out}/: curve.png trajectory.png best.xml summary.json metrics.csv tb/ checkpoints/")
     return 0
 
 

@@ -43,6 +43,7 @@ class BadWalker(Space):
     site_names = ("back_end", "back_inner", "front_inner", "front_end", "middle")
     mutation_names = ("to_back_end", "to_back_inner", "to_front_inner", "to_front_end", "remove")
     attr_names = ("length",)
+    fitness_scale = 1.0  # typical magnitude of the predefined fitness
     max_nodes = 4
 
     def initial(self) -> Morphology:

@@ -33,6 +33,7 @@ class Space(abc.ABC):
     site_names: ClassVar[tuple[str, ...]]
     mutation_names: ClassVar[tuple[str, ...]]
     attr_names: ClassVar[tuple[str, ...]]
+    fitness_scale: ClassVar[float] = 1.0  # typical magnitude of the predefined fitness
     max_nodes: int
 
     # --- what a space defines -------------------------------------------------------------

@@ -46,6 +46,7 @@ class Constructor(Space):
                                                 "edge_end_back", "edge_end_fwd",
                                                 "leg_start", "leg_end"))
     attr_names = ("length",)
+    fitness_scale = 100.0  # typical magnitude of the predefined fitness
 
     def __init__(self, horizon: int = DEFAULT_HORIZON):
         if horizon < 1:
