@@ -43,6 +43,8 @@ class RunConfig:
     horizon: int = 0  # mutations per episode; 0 picks the space's default
     train_steps: int = 10_000  # PPO control steps per fitness evaluation
     hidden: int = 64  # GNN width
+    explore_steps: int = 20  # environment steps over which epsilon anneals from 1 to 0.05
+    learning_starts: int = 32  # transitions stored before the Q-network learns
     chunk: int = 5  # environment steps per jitted call
     checkpoint_every: int = 1  # chunks between checkpoints
 
@@ -54,7 +56,8 @@ class RunConfig:
 
 def gpu_defaults() -> dict:
     """On a GPU the same command evaluates a larger batch with a longer PPO budget."""
-    return {"num_envs": 256, "train_steps": 50_000, "steps": 100, "chunk": 10, "checkpoint_every": 2}
+    return {"num_envs": 256, "train_steps": 50_000, "steps": 100, "explore_steps": 50, "learning_starts": 256,
+            "chunk": 10, "checkpoint_every": 2}
 
 
 def build(cfg: RunConfig):
@@ -68,8 +71,8 @@ def build(cfg: RunConfig):
     scale = FITNESS_SCALE.get(cfg.fitness, space.fitness_scale)
     agent_cfg = dqn.DQNConfig(
         hidden=cfg.hidden,
-        epsilon_steps=max(1, cfg.steps // 2),
-        learning_starts=min(64, cfg.num_envs * max(1, cfg.steps // 4)),
+        epsilon_steps=cfg.explore_steps,
+        learning_starts=cfg.learning_starts,
         batch_size=32,
         reward_scale=1.0 / scale,
     )
@@ -78,27 +81,27 @@ def build(cfg: RunConfig):
     return space, env, greedy_env, init, chunk, q_fn
 
 
-def greedy_rollout(space, env1: EvolutionEnv, q_fn, params, key):
-    """From m0, the agent's greedy mutation at each step, with every body's fitness."""
+def greedy_rollout(space, env1: EvolutionEnv, q_fn, params, first, key):
+    """From m0 (as `first`, the evaluated start of env 0), the agent's greedy mutations."""
 
     @jax.jit
-    def run(params, key):
-        key_reset, key = jax.random.split(key)
-        obs, evo = env1.reset(key_reset)
+    def run(params, first, key):
+        evo = jax.tree.map(lambda x: x[:1], first)
 
-        def body(carry, key):
-            obs, evo = carry
+        def body(evo, key):
+            obs = env1.observe(evo)
             action = dqn.masked_argmax(q_fn(params, obs), obs.mask)
-            obs, evo, *_ = env1.step(key, evo, action)
-            return (obs, evo), (evo.morph, evo.fitness[0], action[0])
+            _, evo, *_ = env1.step(key, evo, action)
+            return evo, (evo.morph, evo.fitness[0], action[0])
 
-        _, (morphs, fitness, actions) = jax.lax.scan(body, (obs, evo), jax.random.split(key, env1.horizon))
-        return evo.morph, evo.fitness[0], morphs, fitness, actions
+        _, (morphs, fitness, actions) = jax.lax.scan(body, evo, jax.random.split(key, env1.horizon))
+        return morphs, fitness, actions
 
-    m0, f0, morphs, fitness, actions = jax.device_get(run(params, key))
-    seq = [jax.tree.map(lambda x: x[0], m0)] + [jax.tree.map(lambda x, i=i: x[i, 0], morphs) for i in range(env1.horizon)]
+    morphs, fitness, actions = jax.device_get(run(params, first, key))
+    m0 = jax.tree.map(lambda x: x[0], jax.device_get(first.morph))
+    seq = [m0] + [jax.tree.map(lambda x, i=i: x[i, 0], morphs) for i in range(env1.horizon)]
     names = [f"node {a // space.num_mutations}: {space.mutation_names[a % space.num_mutations]}" for a in actions]
-    return seq, [float(f0)] + [float(f) for f in fitness], names
+    return seq, [float(first.fitness[0])] + [float(f) for f in fitness], names
 
 
 def checkpoint_manager(out: Path):
@@ -128,13 +131,15 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
     add("--horizon", type=int, default=defaults.horizon, help="mutations per episode (0: 4 for bad_walker, the capacity for constructor)")
     add("--train-steps", type=int, default=defaults.train_steps, help="PPO control steps per fitness evaluation")
     add("--hidden", type=int, default=defaults.hidden, help="width of the GNN Q-network")
+    add("--explore-steps", type=int, default=defaults.explore_steps, help="environment steps of epsilon annealing")
+    add("--learning-starts", type=int, default=defaults.learning_starts, help="transitions stored before learning")
     add("--chunk", type=int, default=defaults.chunk, help="environment steps per jitted call (progress and checkpoint granularity)")
     add("--checkpoint-every", type=int, default=defaults.checkpoint_every, help="chunks between checkpoints")
     args = parser.parse_args(argv)
 
     if args.space not in em.list_spaces():
         parser.error(f"unknown space {args.space!r}; known spaces: {', '.join(em.list_spaces())}")
-    for name in ("steps", "num_envs", "train_steps", "hidden", "chunk", "checkpoint_every"):
+    for name in ("steps", "num_envs", "train_steps", "hidden", "chunk", "checkpoint_every", "explore_steps"):
         if getattr(args, name) < (0 if name == "train_steps" else 1):
             parser.error(f"--{name.replace('_', '-')} must be positive, got {getattr(args, name)}")
     if args.horizon < 0:
@@ -142,6 +147,7 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
     cfg = RunConfig(
         space=args.space, fitness=args.fitness, agent=args.agent, steps=args.steps, seed=args.seed,
         num_envs=args.num_envs, horizon=args.horizon, train_steps=args.train_steps, hidden=args.hidden,
+        explore_steps=args.explore_steps, learning_starts=args.learning_starts,
         chunk=args.chunk, checkpoint_every=args.checkpoint_every,
     )
     out = Path(args.out or f"runs/{cfg.space}-{cfg.fitness}-seed{cfg.seed}")
@@ -228,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # RESULTS
     best = jax.device_get(state.best_morph)
-    morphs, fitness, actions = greedy_rollout(space, greedy_env, q_fn, state.params, key_greedy)
+    morphs, fitness, actions = greedy_rollout(space, greedy_env, q_fn, state.params, state.first, key_greedy)
     steps_arr = np.array([r["step"] for r in rows])
     col = lambda name: np.array([r[name] for r in rows], float)  # noqa: E731
     plots.plot_curve(out / "curve.png", steps_arr, col("reward_median"), col("reward_q25"), col("reward_q75"))
