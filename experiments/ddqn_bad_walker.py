@@ -47,6 +47,17 @@ def main():
     init, chunk, q_fn = dqn.make_agent(env, cfg)
     greedy_env = EvolutionEnv(space, fitness_fn, init_fn, horizon=4, num_envs=1)
 
+    # AGENT-ONLY COST: the same chunk with a free fitness
+    free_init, free_fit = make_fitness_fn(space, em.FitnessConfig(kind="predefined"))
+    free_env = EvolutionEnv(space, free_fit, free_init, horizon=4, num_envs=args.num_envs)
+    f_init, f_chunk, _ = dqn.make_agent(free_env, cfg)
+    f_state = jax.jit(f_init)(jax.random.PRNGKey(0))
+    f_state, _ = jax.block_until_ready(f_chunk(f_state, args.chunk))
+    t = time.perf_counter()
+    for _ in range(5):
+        f_state, _ = jax.block_until_ready(f_chunk(f_state, args.chunk))
+    agent_time = (time.perf_counter() - t) / (5 * args.chunk)
+
     finals, step_times = [], []
     for seed in range(args.seeds):
         start = time.perf_counter()
@@ -62,17 +73,11 @@ def main():
                           "greedy_fitness": fitness, "seconds": time.perf_counter() - start}), flush=True)
         print(space.format(morphs[-1]), flush=True)
 
-    # AGENT-ONLY COST: the same chunk with a free fitness
-    free_init, free_fit = make_fitness_fn(space, em.FitnessConfig(kind="predefined"))
-    free_env = EvolutionEnv(space, free_fit, free_init, horizon=4, num_envs=args.num_envs)
-    f_init, f_chunk, _ = dqn.make_agent(free_env, cfg)
-    f_state = jax.jit(f_init)(jax.random.PRNGKey(0))
-    f_state, _ = jax.block_until_ready(f_chunk(f_state, args.chunk))
-    t = time.perf_counter()
-    for _ in range(5):
-        f_state, _ = jax.block_until_ready(f_chunk(f_state, args.chunk))
-    agent_time = (time.perf_counter() - t) / (5 * args.chunk)
-
+    step_time = float(np.median(step_times)) if step_times else float("nan")
+    print(f"the agent's act + update is {agent_time / step_time:.2%} of an environment step "
+          f"({agent_time * 1e3:.1f} ms of {step_time:.2f} s at {args.num_envs} parallel evolutions)", flush=True)
+    if not args.judge_seeds:
+        return
     # JUDGE: re-measure each final body and m* from scratch
     star = space.optimum()
     swapped = space.mutate(space.mutate(star, bw.BACK, 3), bw.FRONT, 0)
@@ -82,7 +87,6 @@ def main():
     means = np.asarray(result.fitness).reshape(len(bodies), args.judge_seeds).mean(1)
     same = lambda a, b: space.to_json(a) == space.to_json(b)  # noqa: E731
     ok = [same(f, star) or same(f, swapped) or means[i] >= means[-1] for i, f in enumerate(finals)]
-    step_time = float(np.median(step_times))
     print(json.dumps({
         "device": jax.devices()[0].device_kind, "num_envs": args.num_envs, "steps": args.steps,
         "train_steps": args.train_steps, "final_fitness_remeasured": means[:-1].round(1).tolist(),
