@@ -66,8 +66,6 @@ class BodyPlan:
     # Newton solver budget: MJX runs the largest count of a vmapped batch, so keep it small.
     iterations: int = 4
     ls_iterations: int = 8
-    # 0 runs every iteration: a body then computes the same whether batched or alone.
-    tolerance: float = 0.0
 
     def __post_init__(self):
         if not len(self.geom_names) == len(self.geom_body) == len(self.geom_rgba):
@@ -161,7 +159,7 @@ def write_mjcf(plan: BodyPlan, layout: Layout, name: str, padded: bool) -> str:
             f'<mujoco model="{name}">',
             '  <compiler angle="radian" autolimits="true"/>',
             f'  <option timestep="{plan.timestep:.17g}" iterations="{plan.iterations}" '
-            f'ls_iterations="{plan.ls_iterations}" tolerance="{plan.tolerance:.17g}"/>',
+            f'ls_iterations="{plan.ls_iterations}"/>',
             "  <default>",
             f'    <joint type="hinge" axis="0 1 0" range="{lo:.17g} {hi:.17g}" '
             f'damping="{plan.joint_damping:.17g}" armature="{plan.joint_armature:.17g}"/>',
