@@ -1,7 +1,6 @@
 """evojax_morph: robot morphology design as a Markov Decision Process, on JAX and MJX."""
 
 from evojax_morph import physics  # noqa: F401  (first: it imports mjx quietly)
-
 from evojax_morph.fitness import FitnessConfig, FitnessResult, evaluate, init_params
 from evojax_morph.locomotion import Locomotion, TaskConfig
 from evojax_morph.morphology import Morphology, format_tree, stack, unstack

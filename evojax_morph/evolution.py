@@ -10,7 +10,8 @@ takes a batch of parallel unrolls, so one step evaluates a whole batch of morpho
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -79,5 +80,5 @@ class EvolutionEnv:
 
     def auto_reset(self, state: EvoState, first: EvoState, done: jax.Array) -> EvoState:
         """Envs whose episode ended start again from `first` (m0 as `reset` evaluated it)."""
-        pick = lambda a, b: jnp.where(done.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
+        pick = lambda a, b: jnp.where(done.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
         return jax.tree.map(pick, first, state)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Optional
 
 import jax
 import jax.numpy as jnp
@@ -42,7 +41,7 @@ class FitnessResult:
     fitness: jax.Array  # (B,) float: the fitness of each morphology
     fitness_std: jax.Array  # (B,) float: spread across evaluation episodes (0 if deterministic)
     diverged: jax.Array  # (B,) bool: a simulation diverged; its fitness is finite but suspect
-    params: Optional[Params]  # batched (B, ...) trained controllers; None for "predefined"
+    params: Params | None  # batched (B, ...) trained controllers; None for "predefined"
     train_return: jax.Array  # (B,) mean over envs of the last finished training episode's return
     entropy: jax.Array  # (B,) policy entropy per motor at the end of training
     env_steps: int = struct.field(pytree_node=False)  # control steps spent per morphology
@@ -85,7 +84,7 @@ def evaluate(
     morphs: Morphology,
     key: jax.Array,
     cfg: FitnessConfig = FitnessConfig(),
-    init_params: Optional[Params] = None,
+    init_params: Params | None = None,
 ) -> FitnessResult:
     """Fitness of a batch of morphologies, in one compiled call on the default backend.
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import flax.linen as nn
 import jax
@@ -65,7 +65,7 @@ class TreeGNN(nn.Module):
         h = nn.relu(nn.Dense(self.hidden)(nodes)) * mask
         for _ in range(self.layers):
             up, down = tree_graphs(m, h)
-            conv = lambda: jraph.GraphConvolution(nn.Dense(self.hidden), add_self_edges=False)  # noqa: E731
+            conv = lambda: jraph.GraphConvolution(nn.Dense(self.hidden), add_self_edges=False)
             message = conv()(up).nodes + conv()(down).nodes
             h = nn.relu(nn.Dense(self.hidden)(h) + message) * mask
         pooled = jnp.sum(h * mask, 0) / jnp.maximum(mask.sum(), 1.0)

@@ -64,7 +64,7 @@ class Locomotion:
     def __init__(self, space: Space, cfg: TaskConfig = TaskConfig()):
         self.space, self.cfg = space, cfg
         t = space.template
-        joint = lambda name: t.joint(name).id  # noqa: E731
+        joint = lambda name: t.joint(name).id
         self._root_qpos = np.array([t.jnt_qposadr[joint(n)] for n in ROOT_JOINTS])
         self._root_dof = np.array([t.jnt_dofadr[joint(n)] for n in ROOT_JOINTS])
         self._limb_qpos = np.array([t.jnt_qposadr[joint(n)] for n in space.plan.joint_names], int)
@@ -81,8 +81,7 @@ class Locomotion:
 
     def _obs(self, model: mjx.Model, data: mjx.Data) -> jax.Array:
         mask = self.action_mask(model)
-        x, z, pitch = data.qpos[self._root_qpos]
-        del x
+        _, z, pitch = data.qpos[self._root_qpos]
         height = z + model.body_pos[self._root_body, 2]
         return jnp.concatenate(
             [

@@ -7,7 +7,7 @@ two morphologies with the same bodies compare equal whatever slots they went thr
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -60,7 +60,7 @@ class Morphology:
         return {"max_nodes": self.max_nodes, "num_attrs": self.attrs.shape[-1], "nodes": nodes}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Morphology":
+    def from_dict(cls, d: dict) -> Morphology:
         n, a = int(d["max_nodes"]), int(d["num_attrs"])
         active = np.zeros(n, bool)
         parent = np.full(n, -1, np.int32)

@@ -107,7 +107,7 @@ class Layout:
 def write_mjcf(plan: BodyPlan, layout: Layout, name: str, padded: bool) -> str:
     """MJCF of a layout: every slot if `padded` (the template), else the active slots only."""
     lay = jax.tree.map(np.asarray, layout)
-    fmt = lambda v: " ".join(f"{float(x):.17g}" for x in v)  # noqa: E731 (exact round trip)
+    fmt = lambda v: " ".join(f"{float(x):.17g}" for x in v)
 
     def geoms(body: int, indent: str) -> list[str]:
         lines = []
@@ -199,8 +199,8 @@ class TemplateIndex:
     actuator: np.ndarray  # (L,)
 
     @classmethod
-    def build(cls, plan: BodyPlan, model: mujoco.MjModel) -> "TemplateIndex":
-        ids = lambda kind, names: np.array([model.__getattribute__(kind)(n).id for n in names])  # noqa: E731
+    def build(cls, plan: BodyPlan, model: mujoco.MjModel) -> TemplateIndex:
+        ids = lambda kind, names: np.array([model.__getattribute__(kind)(n).id for n in names])
         joints = ids("joint", plan.joint_names)
         return cls(
             body=ids("body", plan.body_names),

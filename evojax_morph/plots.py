@@ -6,11 +6,11 @@ import jax
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from evojax_morph.morphology import Morphology  # noqa: E402
-from evojax_morph.spaces import Space  # noqa: E402
+from evojax_morph.morphology import Morphology
+from evojax_morph.spaces import Space
 
 
 def median_filter(x: np.ndarray, width: int) -> np.ndarray:

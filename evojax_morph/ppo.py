@@ -23,7 +23,7 @@ from brax.training.agents.ppo import losses as ppo_losses
 from brax.training.agents.ppo import networks as ppo_networks
 from flax import struct
 
-from evojax_morph.locomotion import EnvState, Locomotion, TaskConfig
+from evojax_morph.locomotion import Locomotion, TaskConfig
 from evojax_morph.morphology import Morphology
 from evojax_morph.spaces import Space
 
@@ -217,7 +217,7 @@ def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig
             )
 
             # UPDATE NETWORK: epochs x minibatches over the flattened (T x E) samples
-            flat = lambda x: x.reshape((num_envs * horizon,) + x.shape[2:])  # noqa: E731
+            flat = lambda x: x.reshape((num_envs * horizon,) + x.shape[2:])
             samples = jax.tree.map(flat, (traj, advantages, targets))
 
             def epoch(carry, key):
@@ -257,7 +257,7 @@ def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig
         # EVALUATE: deterministic policy, eval_episodes episodes from fresh resets
         returns, eval_diverged = evaluate(key, model, params)
         diverged = eval_diverged.any() | (metrics["diverged"].any() if steps else False)
-        last = lambda name: metrics[name][-1] if steps else jnp.zeros(())  # noqa: E731
+        last = lambda name: metrics[name][-1] if steps else jnp.zeros(())
         return TrainResult(
             params=params,
             fitness=jnp.nan_to_num(returns.mean()),

@@ -12,13 +12,10 @@ import argparse
 import csv
 import dataclasses
 import json
-import os
 import sys
-import time
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 import evojax_morph as em
@@ -236,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     best = jax.device_get(state.best_morph)
     morphs, fitness, actions = greedy_rollout(space, greedy_env, q_fn, state.params, state.first, key_greedy)
     steps_arr = np.array([r["step"] for r in rows])
-    col = lambda name: np.array([r[name] for r in rows], float)  # noqa: E731
+    col = lambda name: np.array([r[name] for r in rows], float)
     plots.plot_curve(out / "curve.png", steps_arr, col("reward_median"), col("reward_q25"), col("reward_q75"))
     plots.plot_trajectory(out / "trajectory.png", space, morphs, fitness, actions)
     (out / "best.xml").write_text(space.to_mjcf(best))

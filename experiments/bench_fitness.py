@@ -21,13 +21,12 @@ import argparse
 import json
 import time
 
+import bench_physics
 import jax
 import numpy as np
 
 import evojax_morph as em
 from evojax_morph import ppo
-
-import bench_physics  # noqa: E402  (same folder)
 
 STANDARD = em.FitnessConfig(ppo=em.PPOConfig(train_steps=10_000, num_envs=16, unroll_length=20))
 
@@ -63,7 +62,7 @@ def main():
         t_batch = median_time(lambda: em.evaluate(space, morphs, keys, cfg).fitness, args.repeats)
 
         single = min(batch, args.single)
-        pick = lambda i: jax.tree.map(lambda x: x[i : i + 1], morphs)  # noqa: E731
+        pick = lambda i: jax.tree.map(lambda x: x[i : i + 1], morphs)
         em.evaluate(space, pick(0), keys[:1], cfg).fitness.block_until_ready()  # compile B = 1
         start = time.perf_counter()
         for i in range(single):

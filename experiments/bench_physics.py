@@ -81,7 +81,7 @@ def bench_space(name: str, batch: int, envs: int, steps: int, repeats: int, seed
     data = jax.vmap(lambda model: broadcast_data(model, 1, envs)[0])(models)
     t_batched = time_rollout(make_rollout(steps, batched_models=True), models, data, repeats)
 
-    rate = lambda t: worlds * steps / t  # noqa: E731
+    rate = lambda t: worlds * steps / t
     return {
         "space": name,
         "device": jax.devices()[0].device_kind,

@@ -85,7 +85,7 @@ def main():
     batch = em.stack([b for b in bodies for _ in range(args.judge_seeds)])
     result = em.evaluate(space, batch, jax.random.PRNGKey(123), fit_cfg)
     means = np.asarray(result.fitness).reshape(len(bodies), args.judge_seeds).mean(1)
-    same = lambda a, b: space.to_json(a) == space.to_json(b)  # noqa: E731
+    same = lambda a, b: space.to_json(a) == space.to_json(b)
     ok = [same(f, star) or same(f, swapped) or means[i] >= means[-1] for i, f in enumerate(finals)]
     print(json.dumps({
         "device": jax.devices()[0].device_kind, "num_envs": args.num_envs, "steps": args.steps,

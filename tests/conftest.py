@@ -4,8 +4,8 @@ import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
-import jax  # noqa: E402
-import pytest  # noqa: E402
+import jax
+import pytest
 
 # Compiled programs survive between runs (CI reuses the machine's cache directory).
 jax.config.update(
@@ -14,7 +14,7 @@ jax.config.update(
 )
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
-import evojax_morph as em  # noqa: E402
+import evojax_morph as em
 
 
 @pytest.fixture(scope="session", params=["bad_walker", "constructor"])

@@ -3,7 +3,6 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 from test_spaces import reachable
 
 import evojax_morph as em

@@ -54,7 +54,7 @@ def test_resume_matches_an_uninterrupted_run(tmp_path):
     import orbax.checkpoint as ocp
 
     args = ocp.args.Composite(state=ocp.args.StandardRestore())
-    restore = lambda d: ocp.CheckpointManager(d.resolve() / "checkpoints").restore(9, args=args)["state"]  # noqa: E731
+    restore = lambda d: ocp.CheckpointManager(d.resolve() / "checkpoints").restore(9, args=args)["state"]
     for x, y in zip(jax.tree.leaves(restore(straight)), jax.tree.leaves(restore(split))):
         np.testing.assert_array_equal(x, y)
 

@@ -63,7 +63,7 @@ def zero_controller(params):
 
 def test_m_star_learns_to_walk(walker, trained):
     _, keys, out1, _, fresh = trained
-    pick = lambda tree: jax.tree.map(lambda x: x[:SEEDS], tree)  # noqa: E731
+    pick = lambda tree: jax.tree.map(lambda x: x[:SEEDS], tree)
     morphs = em.stack([walker.optimum()] * SEEDS)
     zero = em.evaluate(walker, morphs, keys[:SEEDS], EVAL_ONLY, zero_controller(pick(fresh))).fitness
     zero = np.asarray(zero)
@@ -96,7 +96,7 @@ def test_batch_equals_one_at_a_time(walker, trained):
     gen1, keys, _, _, fresh = trained
     batch = em.evaluate(walker, gen1, keys, EVAL_ONLY, fresh)
     for i in (0, SEEDS, 2 * SEEDS - 1):
-        pick = lambda tree: jax.tree.map(lambda x: x[i : i + 1], tree)  # noqa: E731, B023
+        pick = lambda tree: jax.tree.map(lambda x: x[i : i + 1], tree)  # noqa: B023
         one = em.evaluate(walker, pick(gen1), keys[i : i + 1], EVAL_ONLY, init_params=pick(fresh))
         np.testing.assert_allclose(one.fitness[0], batch.fitness[i], rtol=1e-2, atol=0.05)
         np.testing.assert_allclose(one.fitness_std[0], batch.fitness_std[i], rtol=1e-2, atol=0.05)

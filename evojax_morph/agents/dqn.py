@@ -105,7 +105,7 @@ def make_agent(env: EvolutionEnv, cfg: DQNConfig):
         single = jax.tree.map(lambda x: x[0], obs)
         params = net.init(key_net, single.morph, node_features(single.morph, single.progress, num_kinds, num_sites))
         cap = cfg.buffer_size
-        empty = lambda x: jnp.zeros((cap,) + x.shape[1:], x.dtype)  # noqa: E731
+        empty = lambda x: jnp.zeros((cap,) + x.shape[1:], x.dtype)
         buffer = Buffer(
             obs=jax.tree.map(empty, obs),
             action=jnp.zeros(cap, jnp.int32),
@@ -166,7 +166,7 @@ def make_agent(env: EvolutionEnv, cfg: DQNConfig):
         # STORE
         buf = state.buffer
         idx = (buf.pos + jnp.arange(n)) % cfg.buffer_size
-        put = lambda store, x: store.at[idx].set(x)  # noqa: E731
+        put = lambda store, x: store.at[idx].set(x)
         buf = Buffer(
             obs=jax.tree.map(put, buf.obs, obs),
             action=buf.action.at[idx].set(action),
@@ -187,7 +187,7 @@ def make_agent(env: EvolutionEnv, cfg: DQNConfig):
             loss, grads = jax.value_and_grad(loss_fn)(params, state.target_params, batch)
             updates, new_opt = optimizer.update(grads, opt_state, params)
             ready = buf.size >= cfg.learning_starts
-            keep = lambda new, old: jnp.where(ready, new, old)  # noqa: E731
+            keep = lambda new, old: jnp.where(ready, new, old)
             new = (jax.tree.map(keep, optax.apply_updates(params, updates), params), jax.tree.map(keep, new_opt, opt_state))
             return new, loss
 
