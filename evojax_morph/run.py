@@ -108,6 +108,16 @@ def checkpoint_manager(out: Path):
     return ocp, ocp.CheckpointManager(out.resolve() / "checkpoints", options=options)
 
 
+def fresh_run_dir(cfg: RunConfig) -> Path:
+    """runs/SPACE-FITNESS-seedS, or the first of -2, -3, ... that does not exist yet."""
+    base = Path("runs") / f"{cfg.space}-{cfg.fitness}-seed{cfg.seed}"
+    out, n = base, 1
+    while out.exists():
+        n += 1
+        out = base.with_name(f"{base.name}-{n}")
+    return out
+
+
 def parse(argv) -> tuple[RunConfig, Path, bool]:
     parser = argparse.ArgumentParser(
         prog="python -m evojax_morph.run", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -122,7 +132,7 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
     add("--agent", default=defaults.agent, choices=["ddqn"], help="the agent choosing mutations")
     add("--steps", type=int, default=defaults.steps, help="environment steps; each mutates every parallel evolution once")
     add("--seed", type=int, default=defaults.seed, help="seed of every random choice of the run")
-    add("--out", default=None, help="run directory (default runs/SPACE-FITNESS-seedS)")
+    add("--out", default=None, help="run directory (default: a new runs/SPACE-FITNESS-seedS[-N])")
     add("--resume", action="store_true", help="continue the run in --out from its last checkpoint, up to --steps")
     add("--num-envs", type=int, default=defaults.num_envs, help="parallel evolutions: the fitness batch of a step")
     add("--horizon", type=int, default=defaults.horizon, help="mutations per episode (0: 4 for bad_walker, the capacity for constructor)")
@@ -147,7 +157,7 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         explore_steps=args.explore_steps, learning_starts=args.learning_starts,
         chunk=args.chunk, checkpoint_every=args.checkpoint_every,
     )
-    out = Path(args.out or f"runs/{cfg.space}-{cfg.fitness}-seed{cfg.seed}")
+    out = Path(args.out) if args.out else fresh_run_dir(cfg)
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / ".write_test"
