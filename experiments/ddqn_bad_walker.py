@@ -94,7 +94,7 @@ def main():
     print(json.dumps({
         "device": jax.devices()[0].device_kind, "num_envs": args.num_envs, "steps": args.steps,
         "train_steps": args.train_steps, "final_fitness_remeasured": means[:-1].round(1).tolist(),
-        "m_star_remeasured": round(float(means[-1]), 1), "m_star_or_better": ok,
+        "m_star_remeasured": round(float(means[-1]), 1), "m_star_or_better": [bool(x) for x in ok],
         "env_step_s": step_time, "agent_only_step_s": agent_time, "agent_share": agent_time / step_time,
     }))
     print(f"m* or better in {sum(ok)} of {len(ok)} seeds; the agent's act + update is "
