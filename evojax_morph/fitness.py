@@ -48,6 +48,11 @@ class FitnessResult:
 
 
 @functools.lru_cache(maxsize=16)
+def _predefined(space: Space):
+    return jax.jit(jax.vmap(space.predefined_fitness))
+
+
+@functools.lru_cache(maxsize=16)
 def _compiled(space: Space, cfg: FitnessConfig):
     """(init, train) jitted and vmapped over morphologies; cached per space and config."""
     init, train = ppo.make_train(space, cfg.task, cfg.ppo)
@@ -107,7 +112,7 @@ def evaluate(
     batch = morphs.active.shape[0]
     keys = _per_morphology_keys(key, batch)
     if cfg.kind == "predefined":
-        fitness = jax.jit(jax.vmap(space.predefined_fitness))(morphs)
+        fitness = _predefined(space)(morphs)
         zeros = jnp.zeros_like(fitness)
         return FitnessResult(fitness, zeros, zeros.astype(bool), init_params, zeros, zeros, env_steps=0)
 

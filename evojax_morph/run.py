@@ -78,8 +78,9 @@ def build(cfg: RunConfig):
     return space, env, greedy_env, init, chunk, q_fn
 
 
-def greedy_rollout(space, env1: EvolutionEnv, q_fn, params, first, key):
-    """From m0 (as `first`, the evaluated start of env 0), the agent's greedy mutations."""
+def make_greedy_rollout(space, env1: EvolutionEnv, q_fn):
+    """`rollout(params, first, key)`: from m0 (as `first`, the evaluated start of env 0), the
+    agent's greedy mutations, with each body's fitness. Compiled once, reused across calls."""
 
     @jax.jit
     def run(params, first, key):
@@ -94,11 +95,14 @@ def greedy_rollout(space, env1: EvolutionEnv, q_fn, params, first, key):
         _, (morphs, fitness, actions) = jax.lax.scan(body, evo, jax.random.split(key, env1.horizon))
         return morphs, fitness, actions
 
-    morphs, fitness, actions = jax.device_get(run(params, first, key))
-    m0 = jax.tree.map(lambda x: x[0], jax.device_get(first.morph))
-    seq = [m0] + [jax.tree.map(lambda x, i=i: x[i, 0], morphs) for i in range(env1.horizon)]
-    names = [f"node {a // space.num_mutations}: {space.mutation_names[a % space.num_mutations]}" for a in actions]
-    return seq, [float(first.fitness[0])] + [float(f) for f in fitness], names
+    def rollout(params, first, key):
+        morphs, fitness, actions = jax.device_get(run(params, first, key))
+        m0 = jax.tree.map(lambda x: x[0], jax.device_get(first.morph))
+        seq = [m0] + [jax.tree.map(lambda x, i=i: x[i, 0], morphs) for i in range(env1.horizon)]
+        names = [f"node {a // space.num_mutations}: {space.mutation_names[a % space.num_mutations]}" for a in actions]
+        return seq, [float(first.fitness[0])] + [float(f) for f in fitness], names
+
+    return rollout
 
 
 def checkpoint_manager(out: Path):
@@ -241,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # RESULTS
     best = jax.device_get(state.best_morph)
-    morphs, fitness, actions = greedy_rollout(space, greedy_env, q_fn, state.params, state.first, key_greedy)
+    morphs, fitness, actions = make_greedy_rollout(space, greedy_env, q_fn)(state.params, state.first, key_greedy)
     steps_arr = np.array([r["step"] for r in rows])
     col = lambda name: np.array([r[name] for r in rows], float)
     plots.plot_curve(out / "curve.png", steps_arr, col("reward_median"), col("reward_q25"), col("reward_q75"))

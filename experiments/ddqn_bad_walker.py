@@ -25,7 +25,7 @@ import evojax_morph as em
 from evojax_morph.agents import dqn
 from evojax_morph.evolution import EvolutionEnv
 from evojax_morph.fitness import make_fitness_fn
-from evojax_morph.run import greedy_rollout
+from evojax_morph.run import make_greedy_rollout
 from evojax_morph.spaces import bad_walker as bw
 
 
@@ -48,7 +48,7 @@ def main():
     cfg = dqn.DQNConfig(epsilon_steps=args.steps // 2, learning_starts=min(256, 4 * args.num_envs),
                         batch_size=64, reward_scale=0.01)
     init, chunk, q_fn = dqn.make_agent(env, cfg)
-    greedy_env = EvolutionEnv(space, fitness_fn, init_fn, horizon=4, num_envs=1)
+    greedy = make_greedy_rollout(space, EvolutionEnv(space, fitness_fn, init_fn, horizon=4, num_envs=1), q_fn)
 
     # AGENT-ONLY COST: the same chunk with a free fitness
     free_init, free_fit = make_fitness_fn(space, em.FitnessConfig(kind="predefined"))
@@ -70,7 +70,7 @@ def main():
             state, metrics = jax.block_until_ready(chunk(state, args.chunk))
             if seed or c:  # the first call compiles
                 step_times.append((time.perf_counter() - t) / args.chunk)
-        morphs, fitness, actions = greedy_rollout(space, greedy_env, q_fn, state.params, state.first, jax.random.PRNGKey(99))
+        morphs, fitness, actions = greedy(state.params, state.first, jax.random.PRNGKey(99))
         finals.append(morphs[-1])
         print(json.dumps({"seed": seed, "best_fitness": float(state.best_fitness), "greedy": actions,
                           "greedy_fitness": fitness, "seconds": time.perf_counter() - start}), flush=True)
