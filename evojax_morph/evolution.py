@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from evojax_morph.morphology import Morphology
+from evojax_morph.morphology import Morphology, tree_select
 from evojax_morph.spaces import Space
 
 
@@ -80,5 +80,4 @@ class EvolutionEnv:
 
     def auto_reset(self, state: EvoState, first: EvoState, done: jax.Array) -> EvoState:
         """Envs whose episode ended start again from `first` (m0 as `reset` evaluated it)."""
-        pick = lambda a, b: jnp.where(done.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
-        return jax.tree.map(pick, first, state)
+        return tree_select(done, first, state)

@@ -117,11 +117,9 @@ def evaluate(
         return FitnessResult(fitness, zeros, zeros.astype(bool), init_params, zeros, zeros, env_steps=0)
 
     init, train = _compiled(space, cfg)
-    # Full float32 matmuls: TF32 on GPUs perturbs physics and PPO more than RL tolerates.
-    with jax.default_matmul_precision("highest"):
-        if init_params is None:
-            init_params = init(jax.vmap(lambda k: jax.random.fold_in(k, 1))(keys))
-        out = train(keys, morphs, init_params)
+    if init_params is None:
+        init_params = init(jax.vmap(lambda k: jax.random.fold_in(k, 1))(keys))
+    out = train(keys, morphs, init_params)
     return FitnessResult(
         fitness=out.fitness,
         fitness_std=out.fitness_std,

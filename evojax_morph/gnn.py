@@ -71,5 +71,6 @@ class TreeGNN(nn.Module):
         pooled = jnp.sum(h * mask, 0) / jnp.maximum(mask.sum(), 1.0)
         out = h
         for size in self.head:
-            out = nn.relu(nn.Dense(size)(jnp.concatenate([out, jnp.broadcast_to(pooled, out.shape)], -1)))
+            context = jnp.broadcast_to(pooled, (out.shape[0], pooled.shape[-1]))
+            out = nn.relu(nn.Dense(size)(jnp.concatenate([out, context], -1)))
         return nn.Dense(self.out_size)(out), pooled

@@ -89,6 +89,11 @@ class Morphology:
         )
 
 
+def tree_select(cond: jax.Array, a, b):
+    """Per batch element, `a` where `cond` else `b`, for pytrees with a leading (B,) axis."""
+    return jax.tree.map(lambda x, y: jnp.where(cond.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b)
+
+
 def stack(morphs: Sequence[Morphology]) -> Morphology:
     """Batches morphologies of one space along a new leading axis."""
     if not morphs:

@@ -24,7 +24,7 @@ from brax.training.agents.ppo import networks as ppo_networks
 from flax import struct
 
 from evojax_morph.locomotion import Locomotion, TaskConfig
-from evojax_morph.morphology import Morphology
+from evojax_morph.morphology import Morphology, tree_select
 from evojax_morph.spaces import Space
 
 
@@ -158,6 +158,12 @@ def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig
         return loss, entropy
 
     def train(key: jax.Array, morph: Morphology, params: Params) -> TrainResult:
+        # Full float32 matmuls wherever train is traced (em.evaluate, the agents' loops): TF32 on
+        # GPUs perturbs physics and PPO more than RL tolerates.
+        with jax.default_matmul_precision("highest"):
+            return _train(key, morph, params)
+
+    def _train(key: jax.Array, morph: Morphology, params: Params) -> TrainResult:
         model = space.mjx_model(morph)
         mask = env.action_mask(model)
         num_active = jnp.maximum(mask.sum(), 1)
@@ -191,9 +197,7 @@ def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig
                 )
                 last_return = jnp.where(nxt.done, episode_return, last_return)
                 # AUTO-RESET to each world's own first state
-                nxt = jax.tree.map(
-                    lambda a, b: jnp.where(nxt.done.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), first, nxt
-                )
+                nxt = tree_select(nxt.done, first, nxt)
                 episode_return = jnp.where(nxt.steps == 0, 0.0, episode_return)
                 return (nxt, episode_return, last_return, key), transition
 
@@ -201,7 +205,7 @@ def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig
                 env_step, (state, episode_return, last_return, key), length=horizon
             )
 
-            # ADVANTAGES (brax's GAE; the value of a truncated step is bootstrapped)
+            # ADVANTAGES (brax's GAE: a step that hit the time limit is masked out, not bootstrapped)
             if cfg.normalize_observations:
                 normalizer = running_statistics.update(normalizer, traj.obs)
             values = value_apply(normalizer, net["value"], traj.obs)

@@ -246,9 +246,8 @@ def main(argv: list[str] | None = None) -> int:
     # RESULTS
     best = jax.device_get(state.best_morph)
     morphs, fitness, actions = make_greedy_rollout(space, greedy_env, q_fn)(state.params, state.first, key_greedy)
-    steps_arr = np.array([r["step"] for r in rows])
-    col = lambda name: np.array([r[name] for r in rows], float)
-    plots.plot_curve(out / "curve.png", steps_arr, col("reward_median"), col("reward_q25"), col("reward_q75"))
+    col = lambda name: np.array([r[name] for r in rows], float)  # resumed rows are strings
+    plots.plot_curve(out / "curve.png", col("step"), col("reward_median"), col("reward_q25"), col("reward_q75"))
     plots.plot_trajectory(out / "trajectory.png", space, morphs, fitness, actions)
     (out / "best.xml").write_text(space.to_mjcf(best))
     summary = {

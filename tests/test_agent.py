@@ -27,6 +27,24 @@ def test_double_q_target_by_hand():
     np.testing.assert_allclose(got, [28.0, 2.0, 3.0])
 
 
+def test_gnn_ignores_inactive_slots():
+    """Whatever an inactive slot holds, the active nodes' Q-values do not change."""
+    from evojax_morph.gnn import TreeGNN, node_features
+
+    space = em.make_space("constructor")
+    m = space.mutate(space.mutate(space.initial(), 0, 4), 0, 1)  # 3 active nodes of 9
+    feats = node_features(m, jnp.float32(0.25), len(space.kind_names), len(space.site_names))
+    net = TreeGNN(hidden=20, layers=2, out_size=space.num_mutations, head=(64, 32))
+    params = net.init(jax.random.PRNGKey(0), m, feats)
+    q, pooled = net.apply(params, m, feats)
+    junk = m.replace(parent=m.parent.at[5].set(1), kind=m.kind.at[5].set(2))  # slot 5 stays inactive
+    noisy = feats.at[5:].set(jax.random.normal(jax.random.PRNGKey(1), feats[5:].shape))
+    q2, pooled2 = net.apply(params, junk, noisy)
+    assert q.shape == (space.max_nodes, space.num_mutations) and pooled.shape == (20,)
+    np.testing.assert_allclose(q[:3], q2[:3], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(pooled, pooled2, rtol=1e-6, atol=1e-6)
+
+
 def make(space_name="bad_walker", num_envs=NUM_ENVS):
     space = em.make_space(space_name)
     init_fn, fitness_fn = make_fitness_fn(space, em.FitnessConfig(kind="predefined"))

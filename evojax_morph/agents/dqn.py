@@ -150,9 +150,9 @@ def make_agent(env: EvolutionEnv, cfg: DQNConfig):
         # ACT: epsilon-greedy over valid actions only
         obs = env.observe(state.evo)
         greedy = masked_argmax(q_fn(state.params, obs), obs.mask)
-        random = jax.random.categorical(key_rand, jnp.where(obs.mask, 0.0, NEG))
+        uniform = jax.random.categorical(key_rand, jnp.where(obs.mask, 0.0, NEG))
         explore = jax.random.uniform(key_eps, (n,)) < epsilon(cfg, state.step)
-        action = jnp.where(explore, random, greedy).astype(jnp.int32)
+        action = jnp.where(explore, uniform, greedy).astype(jnp.int32)
 
         # MUTATE AND EVALUATE THE CHILDREN (one batched fitness call)
         next_obs, evo, reward, terminated, truncated, _ = env.step(key_env, state.evo, action)
