@@ -5,6 +5,7 @@ from evojax_morph.fitness import FitnessConfig, FitnessResult, evaluate, init_pa
 from evojax_morph.locomotion import Locomotion, TaskConfig
 from evojax_morph.morphology import Morphology, format_tree, stack, unstack
 from evojax_morph.ppo import Params, PPOConfig, make_train
+from evojax_morph.sharding import batch_mesh, init_distributed
 from evojax_morph.spaces import Space, list_spaces, make_space
 
 __all__ = [
@@ -16,8 +17,10 @@ __all__ = [
     "Params",
     "Space",
     "TaskConfig",
+    "batch_mesh",
     "evaluate",
     "format_tree",
+    "init_distributed",
     "init_params",
     "list_spaces",
     "make_space",

@@ -81,3 +81,16 @@ class EvolutionEnv:
     def auto_reset(self, state: EvoState, first: EvoState, done: jax.Array) -> EvoState:
         """Envs whose episode ended start again from `first` (m0 as `reset` evaluated it)."""
         return tree_select(done, first, state)
+
+
+def track_best(evo: EvoState, best_fitness: jax.Array, best_morph: Morphology):
+    """The best (fitness, morphology) so far, updated with this step's bodies."""
+    best = jnp.argmax(evo.fitness)
+    improved = evo.fitness[best] > best_fitness
+    morph = jax.tree.map(lambda new, old: jnp.where(improved, new[best], old), evo.morph, best_morph)
+    return jnp.where(improved, evo.fitness[best], best_fitness), morph
+
+
+def random_valid_actions(key: jax.Array, mask: jax.Array) -> jax.Array:
+    """(N,) int32: one uniformly random valid action per row of an (N, A) mask."""
+    return jax.random.categorical(key, jnp.where(mask, 0.0, -1e9)).astype(jnp.int32)

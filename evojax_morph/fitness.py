@@ -13,6 +13,7 @@ from evojax_morph import ppo
 from evojax_morph.locomotion import TaskConfig
 from evojax_morph.morphology import Morphology
 from evojax_morph.ppo import Params, PPOConfig
+from evojax_morph.sharding import batch_mesh, replicated, shard_batch
 from evojax_morph.spaces import Space
 
 FITNESS_KINDS = ("ppo", "predefined")
@@ -53,18 +54,23 @@ def _predefined(space: Space):
 
 
 @functools.lru_cache(maxsize=16)
-def _compiled(space: Space, cfg: FitnessConfig):
-    """(init, train) jitted and vmapped over morphologies; cached per space and config."""
+def _compiled(space: Space, cfg: FitnessConfig, mesh):
+    """(init, train) vmapped over morphologies, the batch split across `mesh`, jitted; cached.
+
+    With several processes the outputs are replicated, so that every host can read them."""
     init, train = ppo.make_train(space, cfg.task, cfg.ppo)
-    return jax.jit(jax.vmap(init)), jax.jit(jax.vmap(train))
+    out = replicated(mesh) if jax.process_count() > 1 else None
+    jit = lambda fn: jax.jit(shard_batch(jax.vmap(fn), mesh), out_shardings=out)
+    return jit(init), jit(train)
 
 
-def make_fitness_fn(space: Space, cfg: FitnessConfig):
+def make_fitness_fn(space: Space, cfg: FitnessConfig, mesh=None):
     """`(init, fitness)`, pure and jittable, for use inside a larger jitted loop.
 
     init(key) -> params of one controller (a dummy scalar for the predefined fitness);
     fitness(keys (B,), morphs (B, ...), params (B, ...)) -> (fitness (B,), params (B, ...)):
-    the PPO fitness trains each body starting from the given controller (inheritance).
+    the PPO fitness trains each body starting from the given controller (inheritance), the
+    batch split across the devices of `mesh` (default: all; see `sharding.batch_mesh`).
     """
     if cfg.kind == "predefined":
         return (lambda key: jnp.zeros(())), (
@@ -72,16 +78,16 @@ def make_fitness_fn(space: Space, cfg: FitnessConfig):
         )
     init, train = ppo.make_train(space, cfg.task, cfg.ppo)
 
-    def fitness(keys, morphs, params):
-        out = jax.vmap(train)(keys, morphs, params)
+    def fitness_one(key, morph, params):
+        out = train(key, morph, params)
         return out.fitness, out.params
 
-    return init, fitness
+    return init, shard_batch(jax.vmap(fitness_one), mesh)
 
 
 def init_params(space: Space, keys: jax.Array, cfg: FitnessConfig = FitnessConfig()) -> Params:
     """Fresh controllers, one per key: a batch of shape (B, ...)."""
-    return _compiled(space, cfg)[0](keys)
+    return _compiled(space, cfg, batch_mesh())[0](keys)
 
 
 def evaluate(
@@ -90,6 +96,7 @@ def evaluate(
     key: jax.Array,
     cfg: FitnessConfig = FitnessConfig(),
     init_params: Params | None = None,
+    mesh=None,
 ) -> FitnessResult:
     """Fitness of a batch of morphologies, in one compiled call on the default backend.
 
@@ -116,7 +123,7 @@ def evaluate(
         zeros = jnp.zeros_like(fitness)
         return FitnessResult(fitness, zeros, zeros.astype(bool), init_params, zeros, zeros, env_steps=0)
 
-    init, train = _compiled(space, cfg)
+    init, train = _compiled(space, cfg, batch_mesh() if mesh is None else mesh)
     if init_params is None:
         init_params = init(jax.vmap(lambda k: jax.random.fold_in(k, 1))(keys))
     out = train(keys, morphs, init_params)

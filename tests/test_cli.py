@@ -1,9 +1,6 @@
-"""The run command: bad input, resume, and a smoke run through a subprocess."""
+"""The run command: bad input and resume (its PPO smoke run is in test_sharding, on 4 devices)."""
 
 import json
-import os
-import subprocess
-import sys
 
 import jax
 import numpy as np
@@ -57,22 +54,3 @@ def test_resume_matches_an_uninterrupted_run(tmp_path):
     restore = lambda d: ocp.CheckpointManager(d.resolve() / "checkpoints").restore(9, args=args)["state"]
     for x, y in zip(jax.tree.leaves(restore(straight)), jax.tree.leaves(restore(split))):
         np.testing.assert_array_equal(x, y)
-
-
-def test_cli_smoke_with_ppo_fitness(tmp_path):
-    out = tmp_path / "smoke"
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
-    env.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.expanduser("~/.cache/evojax_morph/jax"))
-    cmd = [sys.executable, "-m", "evojax_morph.run", "--space", "bad_walker", "--steps", "2", "--num-envs", "2",
-           "--train-steps", "320", "--chunk", "1", "--out", str(out)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "greedy trajectory from m0" in proc.stdout
-    for name in ("config.json", "metrics.csv", "curve.png", "trajectory.png", "best.xml", "summary.json"):
-        assert (out / name).stat().st_size > 0, name
-    summary = json.loads((out / "summary.json").read_text())
-    assert len(summary["greedy_trajectory"]) == 5 and np.isfinite(summary["best_fitness"])
-    import mujoco
-
-    mujoco.MjModel.from_xml_string((out / "best.xml").read_text())  # the export loads
-    assert list((out / "tb").iterdir())  # TensorBoard events

@@ -13,8 +13,9 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from evojax_morph.evolution import EvolutionEnv, EvoState, Observation
+from evojax_morph.evolution import EvolutionEnv, EvoState, Observation, track_best
 from evojax_morph.gnn import TreeGNN, node_features
+from evojax_morph.sharding import jit_replicated
 
 NEG = -1e9  # masked Q-values: large and finite, never -inf
 
@@ -83,8 +84,13 @@ def epsilon(cfg: DQNConfig, step) -> jax.Array:
     return cfg.epsilon_start + frac * (cfg.epsilon_end - cfg.epsilon_start)
 
 
-def make_agent(env: EvolutionEnv, cfg: DQNConfig):
-    """Returns (init(key) -> DQNState, chunk(state, num_steps) -> (state, metrics), q_fn)."""
+def make_agent(env: EvolutionEnv, cfg: DQNConfig, mesh=None):
+    """Returns (init(key) -> DQNState, chunk(state, num_steps) -> (state, metrics), q_fn).
+
+    init and chunk are jitted with their outputs replicated on every device of `mesh` (default:
+    all; the fitness inside splits its batch across them): the agent is small, and a state
+    whose placement never changes compiles once.
+    """
     space = env.space
     net = TreeGNN(hidden=cfg.hidden, layers=cfg.layers, out_size=space.num_mutations)
     num_kinds, num_sites = len(space.kind_names), len(space.site_names)
@@ -156,12 +162,7 @@ def make_agent(env: EvolutionEnv, cfg: DQNConfig):
 
         # MUTATE AND EVALUATE THE CHILDREN (one batched fitness call)
         next_obs, evo, reward, terminated, truncated, _ = env.step(key_env, state.evo, action)
-        best = jnp.argmax(evo.fitness)
-        improved = evo.fitness[best] > state.best_fitness
-        best_fitness = jnp.where(improved, evo.fitness[best], state.best_fitness)
-        best_morph = jax.tree.map(
-            lambda new, old: jnp.where(improved, new[best], old), evo.morph, state.best_morph
-        )
+        best_fitness, best_morph = track_best(evo, state.best_fitness, state.best_morph)
 
         # STORE
         buf = state.buffer
@@ -212,5 +213,6 @@ def make_agent(env: EvolutionEnv, cfg: DQNConfig):
         """`num_steps` env steps in one `lax.scan`; metrics stacked along a leading axis."""
         return jax.lax.scan(env_step, state, length=num_steps)
 
-    return init, jax.jit(chunk, static_argnums=1), q_fn
+    init, chunk = jit_replicated(init, chunk, mesh)
+    return init, chunk, q_fn
 

@@ -156,14 +156,17 @@ class Space(abc.ABC):
         return physics.TemplateIndex.build(self.plan, self.template)
 
     def mjx_template(self) -> mjx.Model:
-        """`template` on the default device, in float64 when jax_enable_x64 is on."""
+        """`template` on this process's first device, in float64 when jax_enable_x64 is on.
+
+        A fixed local device, not the default: first built inside a trace whose outputs span
+        several hosts, the default would give arrays no single process may close over."""
         return self._mjx_template(bool(jax.config.jax_enable_x64))
 
     @functools.lru_cache(maxsize=2)
     def _mjx_template(self, x64: bool) -> mjx.Model:
         del x64  # only a cache key: put_model picks the dtype from the flag
         with jax.ensure_compile_time_eval():
-            return mjx.put_model(self.template)
+            return mjx.put_model(self.template, device=jax.local_devices()[0])
 
     def mjx_model(self, m: Morphology) -> mjx.Model:
         """The template specialised to `m`: jit and vmap over `m` compile once for all bodies."""

@@ -1,0 +1,87 @@
+"""Batched fitness across devices: evaluations per second on 1 device and on all of them.
+
+For each device count n (1 and every visible device), `em.evaluate` runs --per-device x n
+random Bad Walker bodies split over a mesh of n devices, at the standard budget of
+bench_fitness.py (10,920 control steps per body). The 1-device row is also run at the
+largest batch, which shows whether one device was already full. Then the same for one
+environment step of the Double-DQN loop (mutate every body, evaluate the children, store,
+update the replicated agent) at --envs-per-device x n parallel evolutions. Speed-up = evals/s
+on n devices over evals/s on one device at its full batch. Timings exclude compilation.
+
+  XLA_FLAGS=--xla_force_host_platform_device_count=2 \
+    python experiments/bench_sharding.py --per-device 2 --envs-per-device 2 --dqn-train-steps 320 --repeats 1
+  python experiments/bench_sharding.py --per-device 1024 --envs-per-device 256     # GPUs
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import jax
+from bench_fitness import STANDARD, median_time
+
+import evojax_morph as em
+from evojax_morph.agents import dqn
+from evojax_morph.evolution import EvolutionEnv
+from evojax_morph.fitness import make_fitness_fn
+from evojax_morph.sharding import batch_mesh
+
+
+def bench_evaluate(space, devices, batch: int, repeats: int) -> float:
+    keys = jax.random.split(jax.random.PRNGKey(batch), batch)
+    morphs = jax.jit(jax.vmap(space.random_morphology, (0, None)), static_argnums=1)(keys, 3)
+    mesh = batch_mesh(devices)
+    t = median_time(lambda: em.evaluate(space, morphs, keys, STANDARD, mesh=mesh).fitness, repeats)
+    return batch / t
+
+
+def bench_dqn_step(space, devices, num_envs: int, train_steps: int, repeats: int) -> float:
+    fit_cfg = em.FitnessConfig(ppo=em.PPOConfig(train_steps=train_steps, num_envs=16, unroll_length=20))
+    init_fn, fitness_fn = make_fitness_fn(space, fit_cfg, mesh=batch_mesh(devices))
+    env = EvolutionEnv(space, fitness_fn, init_fn, horizon=4, num_envs=num_envs)
+    init, chunk, _ = dqn.make_agent(env, dqn.DQNConfig(learning_starts=0), mesh=batch_mesh(devices))
+    state = jax.jit(init)(jax.random.PRNGKey(0))
+    holder = [state]
+
+    def one_step():
+        holder[0], metrics = chunk(holder[0], 1)
+        return metrics["fitness"]
+
+    return num_envs / median_time(one_step, repeats)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--per-device", type=int, default=16, help="bodies per device for em.evaluate")
+    parser.add_argument("--envs-per-device", type=int, default=0, help="DQN parallel evolutions per device (0: skip)")
+    parser.add_argument("--dqn-train-steps", type=int, default=5_000)
+    parser.add_argument("--repeats", type=int, default=2)
+    args = parser.parse_args()
+    jax.config.update("jax_default_matmul_precision", "highest")
+    space = em.make_space("bad_walker")
+    devices = jax.devices()
+    counts = sorted({1, len(devices)})
+    rows = []
+    for what in ("evaluate", "dqn_step") if args.envs_per_device else ("evaluate",):
+        per = args.per_device if what == "evaluate" else args.envs_per_device
+        runs = [(n, per * n) for n in counts]
+        if len(devices) > 1:
+            runs.insert(1, (1, per * len(devices)))  # one device at the largest batch
+        for n, batch in runs:
+            if what == "evaluate":
+                rate = bench_evaluate(space, devices[:n], batch, args.repeats)
+            else:
+                rate = bench_dqn_step(space, devices[:n], batch, args.dqn_train_steps, args.repeats)
+            rows.append({"what": what, "device": devices[0].device_kind, "devices": n, "batch": batch,
+                         "evals_per_s": rate})
+            print(json.dumps(rows[-1]), flush=True)
+
+    print(f"\n{'what':>9} {'devices':>7} {'batch':>6} {'evals/s':>9} {'speed-up':>9}")
+    for r in rows:
+        base = max(x["evals_per_s"] for x in rows if x["what"] == r["what"] and x["devices"] == 1)
+        print(f"{r['what']:>9} {r['devices']:>7} {r['batch']:>6} {r['evals_per_s']:>9.4g} {r['evals_per_s'] / base:>9.2f}")
+
+
+if __name__ == "__main__":
+    main()
