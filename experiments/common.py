@@ -1,0 +1,119 @@
+"""Shared by the figure scripts: run one agent over several seeds at once, and plot bands.
+
+Seeds run under `jax.vmap` in one compiled call per chunk, so S seeds of N parallel evolutions
+evaluate S x N bodies per step in one batch; the wall-clock time of a step is that of the whole
+batch (all seeds together).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+
+import jax
+import matplotlib
+import numpy as np
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+import evojax_morph as em  # noqa: E402
+from evojax_morph import agents  # noqa: E402
+from evojax_morph.evolution import EvolutionEnv  # noqa: E402
+from evojax_morph.fitness import make_fitness_fn  # noqa: E402
+from evojax_morph.run import FITNESS_SCALE  # noqa: E402
+
+
+@dataclasses.dataclass(frozen=True)
+class Setup:
+    space: str = "bad_walker"
+    fitness: str = "ppo"
+    train_steps: int = 10_000
+    num_envs: int = 8  # parallel evolutions per seed
+    steps: int = 12  # environment steps
+    chunk: int = 4
+    hidden: int = 64
+    horizon: int = 0  # 0: the space's default
+
+
+def add_setup_flags(parser, seeds: int = 3, **defaults):
+    d = dataclasses.replace(Setup(), **defaults)
+    for f in dataclasses.fields(Setup):
+        parser.add_argument("--" + f.name.replace("_", "-"), type=type(getattr(d, f.name)), default=getattr(d, f.name))
+    parser.add_argument("--seeds", type=int, default=seeds)
+    parser.add_argument("--out", default=None)
+
+
+def setup_from(args) -> Setup:
+    return Setup(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Setup)})
+
+
+def run_agent(agent: str, setup: Setup, seeds: int, **overrides) -> dict:
+    """`seeds` independent runs of `agent`; returns per-step arrays of shape (steps, seeds, ...)."""
+    space = em.make_space(setup.space)
+    fit_cfg = em.FitnessConfig(kind=setup.fitness, ppo=em.PPOConfig(train_steps=setup.train_steps, num_envs=16))
+    init_fn, fitness_fn = make_fitness_fn(space, fit_cfg)
+    horizon = setup.horizon or (space.max_nodes - 1 if setup.space == "constructor" else 4)
+    env = EvolutionEnv(space, fitness_fn, init_fn, horizon=horizon, num_envs=setup.num_envs)
+    scale = FITNESS_SCALE.get(setup.fitness, space.fitness_scale)
+    extra = {"ddqn": {"epsilon_steps": max(setup.steps // 2, 1), "learning_starts": 4 * setup.num_envs,
+                      "batch_size": 32},
+             "a2c": {"unroll": horizon}}.get(agent, {})
+    init, chunk, _ = agents.make_agent(agent, env, setup.hidden, 1.0 / scale, **{**extra, **overrides})
+    keys = jax.random.split(jax.random.PRNGKey(0), seeds)
+    start = time.perf_counter()
+    states = jax.block_until_ready(jax.jit(jax.vmap(init))(keys))
+    init_s = time.perf_counter() - start
+    step_fns = {}
+    metrics, walls, done = [], [], 0
+    while done < setup.steps:
+        n = min(setup.chunk, setup.steps - done)
+        if n not in step_fns:
+            step_fns[n] = jax.jit(jax.vmap(lambda s, n=n: chunk(s, n)))
+            jax.block_until_ready(step_fns[n].lower(states).compile())  # compile outside the clock
+        start = time.perf_counter()
+        states, m = jax.block_until_ready(step_fns[n](states))
+        walls += [(time.perf_counter() - start) / n] * n
+        metrics.append(jax.device_get(m))
+        done += n
+    # metrics come as (seeds, n, ...): put steps first
+    cat = {k: np.concatenate([np.swapaxes(m[k], 0, 1) for m in metrics]) for k in metrics[0]}
+    best = jax.device_get(states.best_morph)
+    return {
+        "agent": agent,
+        "metrics": cat,  # (steps, seeds, ...)
+        "step_seconds": np.asarray(walls),  # (steps,) wall-clock of a step, all seeds together
+        "init_seconds": init_s,  # compile and evaluate m0 (compile included: the first call)
+        "evals_per_step": setup.num_envs,  # per seed
+        "best_bodies": [jax.tree.map(lambda x, i=i: x[i], best) for i in range(seeds)],
+        "best_fitness": np.asarray(jax.device_get(states.best_fitness)),
+        "space": space,
+    }
+
+
+def band(ax, x, y, label, color=None):
+    """Median over the last axis with a .25-.75 quantile band."""
+    med, lo, hi = np.median(y, -1), np.quantile(y, 0.25, -1), np.quantile(y, 0.75, -1)
+    (line,) = ax.plot(x, med, label=label, color=color)
+    ax.fill_between(x, lo, hi, alpha=0.25, color=line.get_color())
+
+
+def save(fig, out, name: str, summary: dict):
+    from pathlib import Path
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(out / f"{name}.png", dpi=120)
+    plt.close(fig)
+    (out / f"{name}.json").write_text(json.dumps(summary, indent=1, default=float))
+    print(f"wrote {out / name}.png and .json")
+
+
+def episode_returns(reward: np.ndarray, horizon: int) -> np.ndarray:
+    """(steps, seeds, N) rewards -> (episodes, seeds): each episode's return f_k - f_0, averaged
+    over the N parallel evolutions (all of a run's evolutions start and end episodes together)."""
+    episodes = reward.shape[0] // horizon
+    r = reward[: episodes * horizon].reshape(episodes, horizon, *reward.shape[1:])
+    return r.sum(1).mean(-1)

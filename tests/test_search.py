@@ -1,0 +1,117 @@
+"""The actor-critic agent, the baselines and the landscapes, with the predefined fitness (fast);
+and a smoke run of every experiment script at a tiny budget."""
+
+import json
+import runpy
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_spaces import reachable
+
+import evojax_morph as em
+from evojax_morph import agents, landscape
+from evojax_morph.agents import a2c
+from evojax_morph.evolution import EvolutionEnv
+from evojax_morph.fitness import make_fitness_fn
+
+EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+
+
+def make_env(space_name, num_envs, horizon):
+    space = em.make_space(space_name)
+    init_fn, fitness_fn = make_fitness_fn(space, em.FitnessConfig(kind="predefined"))
+    return space, EvolutionEnv(space, fitness_fn, init_fn, horizon=horizon, num_envs=num_envs)
+
+
+def test_masked_entropy_by_hand():
+    logits = jnp.array([[0.0, 5.0, 0.0, 0.0], [1.0, 2.0, 3.0, 4.0]])
+    mask = jnp.array([[True, False, True, True], [False, False, False, True]])
+    # row 0: uniform over 3 valid actions (the masked 5 must not count): log 3; row 1: one action: 0
+    np.testing.assert_allclose(a2c.masked_entropy(logits, mask), [np.log(3.0), 0.0], atol=1e-6)
+
+
+def test_actor_critic_learns_constructor():
+    """Episode returns (f_8 - f_0) rise from random play to near the space's best, and entropy falls."""
+    space, env = make_env("constructor", 16, 8)
+    init, chunk, _ = agents.make_agent("a2c", env, hidden=32, reward_scale=1.0 / space.fitness_scale, unroll=8)
+    state, metrics = chunk(init(jax.random.PRNGKey(0)), 200)
+    returns = np.asarray(metrics["reward"]).reshape(25, 8, 16).sum(1).mean(1)  # (episodes,)
+    assert returns[-5:].mean() > returns[:5].mean() + 200, returns
+    assert metrics["entropy"][-8:].mean() < metrics["entropy"][:8].mean() - 0.5
+    assert np.isfinite(metrics["loss"]).all()
+
+
+def test_evolution_is_elitist_and_random_walks_stay_valid():
+    space, env = make_env("bad_walker", 8, 4)
+    init, chunk, scores = agents.make_agent("evolution", env)
+    assert scores is None
+    state, metrics = chunk(init(jax.random.PRNGKey(0)), 12)
+    best = np.asarray(metrics["best_fitness"])
+    assert (np.diff(best) >= 0).all()
+    # (mu + lambda) with a deterministic fitness: the population's worst never gets worse
+    optimum = max(float(space.predefined_fitness(m)) for m in reachable(space))
+    assert float(state.evo.fitness.min()) >= float(env.space.predefined_fitness(space.initial()))
+    assert best[-1] == pytest.approx(optimum)  # 96 evaluations find Bad Walker's best body
+
+    init, chunk, _ = agents.make_agent("random", env)
+    state, metrics = chunk(init(jax.random.PRNGKey(1)), 8)  # two episodes: restarts at m0
+    fitness = np.asarray(metrics["fitness"])
+    valid = jax.vmap(space.predefined_fitness)(state.evo.morph)
+    assert np.isfinite(fitness).all() and (state.evo.steps == 0).all()
+    np.testing.assert_allclose(state.evo.fitness, valid)
+
+
+def test_landscape_enumerates_ranks_and_round_trips(tmp_path):
+    space = em.make_space("bad_walker")
+    # back foot to front_end (site 3) and front foot to back_end (site 0), or the other way
+    swapped = space.mutate(space.mutate(space.initial(), 2, 3), 3, 0)
+    same = space.mutate(space.mutate(space.initial(), 2, 0), 3, 3)
+    assert landscape.canonical(swapped) == landscape.canonical(same)  # identical short feet
+    assert landscape.canonical(swapped) != landscape.canonical(space.initial())
+
+    ls = landscape.measure(space, em.FitnessConfig(kind="predefined"), 2, jax.random.PRNGKey(0))
+    slots = reachable(space)  # an independent BFS, telling bodies apart by slot
+    distinct = {landscape.canonical(m) for m in slots}
+    assert len(slots) == 150 and len(ls.keys) == len(distinct) == 90 and ls.depths[0] == 0
+    assert landscape.canonical(ls.best()) == landscape.canonical(space.optimum())
+    assert ls.rank(space.optimum()) == 1 and ls.regret(space.optimum()) == 0.0
+    m0 = ls.index(space.initial())
+    assert ls.rank(space.initial()) == 1 + int((ls.mean > ls.mean[m0]).sum()) > 1
+    np.testing.assert_array_equal(ls.std, 0.0)  # deterministic fitness
+    ls.save(tmp_path / "ls.json")
+    back = landscape.Landscape.load(tmp_path / "ls.json")
+    assert back.keys == ls.keys and back.rank(space.initial()) == ls.rank(space.initial())
+
+
+@pytest.mark.parametrize(
+    "script, args, output",
+    [
+        ("fig4_predefined.py", ["--steps", "8", "--chunk", "8", "--num-envs", "4", "--seeds", "2"], "fig4_predefined"),
+        ("fig6_ddqn_hidden.py", ["--fitness", "predefined", "--steps", "8", "--chunk", "8", "--num-envs", "4",
+                                 "--seeds", "2"], "fig6_ddqn_hidden"),
+        ("fig8_a2c_constructor.py", ["--fitness", "predefined", "--steps", "16", "--chunk", "16", "--num-envs",
+                                     "4", "--seeds", "2"], "fig8_a2c_constructor"),
+        ("compare.py", ["--fitness", "predefined", "--steps", "4", "--chunk", "4", "--num-envs", "4", "--seeds", "2",
+                        "--landscape", "LANDSCAPE"], "compare_bad_walker"),
+        ("landscapes.py", ["--spaces", "bad_walker", "--train-steps", "160", "--seeds", "1", "--batch", "96"],
+         "landscape_bad_walker"),
+    ],
+)
+def test_experiment_scripts_run_at_a_tiny_budget(script, args, output, tmp_path, monkeypatch):
+    if "LANDSCAPE" in args:
+        ls = landscape.measure(em.make_space("bad_walker"), em.FitnessConfig(kind="predefined"), 1,
+                               jax.random.PRNGKey(0))
+        ls.save(tmp_path / "ls.json")
+        args = [str(tmp_path / "ls.json") if a == "LANDSCAPE" else a for a in args]
+    monkeypatch.syspath_prepend(str(EXPERIMENTS))
+    monkeypatch.setattr(sys, "argv", [script, *args, "--out", str(tmp_path)])
+    runpy.run_path(str(EXPERIMENTS / script), run_name="__main__")
+    assert (tmp_path / f"{output}.png").stat().st_size > 0
+    summary = json.loads((tmp_path / f"{output}.json").read_text())
+    assert summary
+    if script == "compare.py":
+        assert all(1 <= r <= 90 for m in ("ddqn", "a2c", "evolution", "random") for r in summary[m]["rank"])
