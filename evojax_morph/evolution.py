@@ -20,6 +20,8 @@ from flax import struct
 from evojax_morph.morphology import Morphology, tree_select
 from evojax_morph.spaces import Space
 
+NEG = -1e9  # the score of a masked action: large and finite, never -inf
+
 
 @struct.dataclass
 class Observation:
@@ -83,8 +85,11 @@ class EvolutionEnv:
         return tree_select(done, first, state)
 
 
-def track_best(evo: EvoState, best_fitness: jax.Array, best_morph: Morphology):
-    """The best (fitness, morphology) so far, updated with this step's bodies."""
+def track_best(evo: EvoState, best_fitness=-jnp.inf, best_morph: Morphology | None = None):
+    """The best (fitness, morphology) so far, updated with this step's bodies; with no best so
+    far, the best of `evo`."""
+    if best_morph is None:
+        best_morph = jax.tree.map(lambda x: x[0], evo.morph)
     best = jnp.argmax(evo.fitness)
     improved = evo.fitness[best] > best_fitness
     morph = jax.tree.map(lambda new, old: jnp.where(improved, new[best], old), evo.morph, best_morph)
@@ -93,4 +98,4 @@ def track_best(evo: EvoState, best_fitness: jax.Array, best_morph: Morphology):
 
 def random_valid_actions(key: jax.Array, mask: jax.Array) -> jax.Array:
     """(N,) int32: one uniformly random valid action per row of an (N, A) mask."""
-    return jax.random.categorical(key, jnp.where(mask, 0.0, -1e9)).astype(jnp.int32)
+    return jax.random.categorical(key, jnp.where(mask, 0.0, NEG)).astype(jnp.int32)

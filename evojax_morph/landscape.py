@@ -20,14 +20,16 @@ from evojax_morph.morphology import Morphology, stack
 from evojax_morph.spaces import Space
 
 
-def canonical(m: Morphology, node: int = 0) -> str:
+def canonical(m: Morphology) -> str:
     """A string naming the body's shape: equal for bodies that differ only in slot numbers."""
     m = jax.device_get(m)
-    children = sorted(
-        canonical(m, j) for j in range(1, m.max_nodes) if m.active[j] and int(m.parent[j]) == node
-    )
-    attrs = ",".join(f"{a:.6g}" for a in np.asarray(m.attrs[node], float))
-    return f"{int(m.kind[node])}@{int(m.site[node])}[{attrs}](" + " ".join(children) + ")"
+
+    def name(node: int) -> str:
+        children = sorted(name(j) for j in range(1, m.max_nodes) if m.active[j] and int(m.parent[j]) == node)
+        attrs = ",".join(f"{a:.6g}" for a in np.asarray(m.attrs[node], float))
+        return f"{int(m.kind[node])}@{int(m.site[node])}[{attrs}](" + " ".join(children) + ")"
+
+    return name(0)
 
 
 def enumerate_bodies(space: Space, max_depth: int | None = None) -> tuple[list[Morphology], list[int]]:

@@ -232,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
         log(f"resumed at step {step}")
     else:
         log("evaluating m0 in every evolution...")
-        state = jax.jit(init)(key_init)
+        state = init(key_init)
         step = 0
 
     from tensorboardX import SummaryWriter

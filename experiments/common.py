@@ -18,11 +18,7 @@ import numpy as np
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-import evojax_morph as em  # noqa: E402
-from evojax_morph import agents  # noqa: E402
-from evojax_morph.evolution import EvolutionEnv  # noqa: E402
-from evojax_morph.fitness import make_fitness_fn  # noqa: E402
-from evojax_morph.run import FITNESS_SCALE  # noqa: E402
+from evojax_morph.run import RunConfig, build  # noqa: E402
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,18 +45,13 @@ def setup_from(args) -> Setup:
     return Setup(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Setup)})
 
 
-def run_agent(agent: str, setup: Setup, seeds: int, **overrides) -> dict:
-    """`seeds` independent runs of `agent`; returns per-step arrays of shape (steps, seeds, ...)."""
-    space = em.make_space(setup.space)
-    fit_cfg = em.FitnessConfig(kind=setup.fitness, ppo=em.PPOConfig(train_steps=setup.train_steps, num_envs=16))
-    init_fn, fitness_fn = make_fitness_fn(space, fit_cfg)
-    horizon = setup.horizon or (space.max_nodes - 1 if setup.space == "constructor" else 4)
-    env = EvolutionEnv(space, fitness_fn, init_fn, horizon=horizon, num_envs=setup.num_envs)
-    scale = FITNESS_SCALE.get(setup.fitness, space.fitness_scale)
-    extra = {"ddqn": {"epsilon_steps": max(setup.steps // 2, 1), "learning_starts": 4 * setup.num_envs,
-                      "batch_size": 32},
-             "a2c": {"unroll": horizon}}.get(agent, {})
-    init, chunk, _ = agents.make_agent(agent, env, setup.hidden, 1.0 / scale, **{**extra, **overrides})
+def run_agent(agent: str, setup: Setup, seeds: int) -> dict:
+    """`seeds` independent runs of `agent`, built as the run command builds them; returns
+    per-step arrays of shape (steps, seeds, ...)."""
+    cfg = RunConfig(space=setup.space, fitness=setup.fitness, agent=agent, num_envs=setup.num_envs,
+                    horizon=setup.horizon, train_steps=setup.train_steps, hidden=setup.hidden,
+                    explore_steps=max(setup.steps // 2, 1), learning_starts=4 * setup.num_envs)
+    space, env, _, init, chunk, _ = build(cfg)
     keys = jax.random.split(jax.random.PRNGKey(0), seeds)
     start = time.perf_counter()
     states = jax.block_until_ready(jax.jit(jax.vmap(init))(keys))
@@ -89,6 +80,7 @@ def run_agent(agent: str, setup: Setup, seeds: int, **overrides) -> dict:
         "best_bodies": [jax.tree.map(lambda x, i=i: x[i], best) for i in range(seeds)],
         "best_fitness": np.asarray(jax.device_get(states.best_fitness)),
         "space": space,
+        "horizon": env.horizon,
     }
 
 

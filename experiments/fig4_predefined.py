@@ -31,8 +31,7 @@ def main():
         for agent in ("ddqn", "a2c"):
             res = run_agent(agent, setup, args.seeds)
             space = res["space"]
-            horizon = setup.horizon or (space.max_nodes - 1 if space_name == "constructor" else 4)
-            ret = episode_returns(res["metrics"]["reward"], horizon)
+            ret = episode_returns(res["metrics"]["reward"], res["horizon"])
             band(ax, np.arange(1, len(ret) + 1), ret, agent)
             summary[f"{space_name}/{agent}"] = {"final_return_median": float(np.median(ret[-5:].mean(0))),
                                                  "returns": ret.tolist()}

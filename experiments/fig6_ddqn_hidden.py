@@ -28,7 +28,7 @@ def main():
     for hidden in (20, 100):
         setup = dataclasses.replace(setup_from(args), hidden=hidden)
         res = run_agent("ddqn", setup, args.seeds)
-        ret = episode_returns(res["metrics"]["reward"], setup.horizon or 4)
+        ret = episode_returns(res["metrics"]["reward"], res["horizon"])
         band(ax_ret, np.arange(1, len(ret) + 1), ret, f"hidden {hidden}")
         best = res["metrics"]["best_fitness"]  # (steps, seeds)
         band(ax_best, np.arange(1, len(best) + 1), best, f"hidden {hidden}")

@@ -24,8 +24,7 @@ def main():
     jax.config.update("jax_default_matmul_precision", "highest")
     setup = setup_from(args)
     res = run_agent("a2c", setup, args.seeds)
-    horizon = setup.horizon or res["space"].max_nodes - 1
-    ret = episode_returns(res["metrics"]["reward"], horizon)
+    ret = episode_returns(res["metrics"]["reward"], res["horizon"])
     entropy = res["metrics"]["entropy"]  # (steps, seeds)
     fig, (ax_ret, ax_ent) = plt.subplots(1, 2, figsize=(10, 3.6))
     band(ax_ret, np.arange(1, len(ret) + 1), ret, "a2c")

@@ -18,11 +18,9 @@ import optax
 from brax.training.agents.ppo import losses as ppo_losses
 from flax import struct
 
-from evojax_morph.evolution import EvolutionEnv, EvoState, Observation, track_best
+from evojax_morph.evolution import NEG, EvolutionEnv, EvoState, Observation, track_best
 from evojax_morph.gnn import TreeGNN, node_features
 from evojax_morph.sharding import jit_replicated
-
-NEG = -1e9  # masked logits: large and finite, never -inf
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,7 +113,7 @@ def make_agent(env: EvolutionEnv, cfg: A2CConfig, mesh=None):
             reward=jnp.zeros((t, n)),
             done=jnp.zeros((t, n), bool),
         )
-        best = jnp.argmax(evo.fitness)
+        best_fitness, best_morph = track_best(evo)
         return A2CState(
             params=params,
             opt_state=optimizer.init(params),
@@ -125,8 +123,8 @@ def make_agent(env: EvolutionEnv, cfg: A2CConfig, mesh=None):
             key=key,
             step=jnp.zeros((), jnp.int32),
             loss=jnp.zeros(()),
-            best_fitness=evo.fitness[best],
-            best_morph=jax.tree.map(lambda x: x[best], evo.morph),
+            best_fitness=best_fitness,
+            best_morph=best_morph,
         )
 
     def loss_fn(params, unroll: Unroll, last_obs: Observation):

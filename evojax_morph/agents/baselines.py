@@ -38,9 +38,7 @@ def make_agent(env: EvolutionEnv, kind: str, mesh=None):
     def init(key: jax.Array) -> SearchState:
         key_env, key = jax.random.split(key)
         _, evo = env.reset(key_env)
-        best = jnp.argmax(evo.fitness)
-        best_morph = jax.tree.map(lambda x: x[best], evo.morph)
-        return SearchState(evo, evo, key, jnp.zeros((), jnp.int32), evo.fitness[best], best_morph)
+        return SearchState(evo, evo, key, jnp.zeros((), jnp.int32), *track_best(evo))
 
     def env_step(state: SearchState, _):
         key, key_act, key_env = jax.random.split(state.key, 3)

@@ -13,11 +13,16 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from evojax_morph.evolution import EvolutionEnv, EvoState, Observation, track_best
+from evojax_morph.evolution import (
+    NEG,
+    EvolutionEnv,
+    EvoState,
+    Observation,
+    random_valid_actions,
+    track_best,
+)
 from evojax_morph.gnn import TreeGNN, node_features
 from evojax_morph.sharding import jit_replicated
-
-NEG = -1e9  # masked Q-values: large and finite, never -inf
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,7 +126,7 @@ def make_agent(env: EvolutionEnv, cfg: DQNConfig, mesh=None):
             pos=jnp.zeros((), jnp.int32),
             size=jnp.zeros((), jnp.int32),
         )
-        best = jnp.argmax(evo.fitness)
+        best_fitness, best_morph = track_best(evo)
         return DQNState(
             params=params,
             target_params=params,
@@ -131,8 +136,8 @@ def make_agent(env: EvolutionEnv, cfg: DQNConfig, mesh=None):
             first=evo,
             key=key,
             step=jnp.zeros((), jnp.int32),
-            best_fitness=evo.fitness[best],
-            best_morph=jax.tree.map(lambda x: x[best], evo.morph),
+            best_fitness=best_fitness,
+            best_morph=best_morph,
         )
 
     def loss_fn(params, target_params, batch):
@@ -156,7 +161,7 @@ def make_agent(env: EvolutionEnv, cfg: DQNConfig, mesh=None):
         # ACT: epsilon-greedy over valid actions only
         obs = env.observe(state.evo)
         greedy = masked_argmax(q_fn(state.params, obs), obs.mask)
-        uniform = jax.random.categorical(key_rand, jnp.where(obs.mask, 0.0, NEG))
+        uniform = random_valid_actions(key_rand, obs.mask)
         explore = jax.random.uniform(key_eps, (n,)) < epsilon(cfg, state.step)
         action = jnp.where(explore, uniform, greedy).astype(jnp.int32)
 
