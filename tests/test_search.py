@@ -114,3 +114,9 @@ def test_experiment_scripts_run_at_a_tiny_budget(script, args, output, tmp_path,
     assert summary
     if script == "compare.py":
         assert all(1 <= r <= 90 for m in ("ddqn", "a2c", "evolution", "random") for r in summary[m]["rank"])
+        # Same flags again: every method is resumed from the JSON, none rerun, the figure redrawn.
+        (tmp_path / f"{output}.png").unlink()
+        monkeypatch.setattr("common.run_agent", lambda *a: pytest.fail("a finished method was rerun"))
+        runpy.run_path(str(EXPERIMENTS / script), run_name="__main__")
+        assert (tmp_path / f"{output}.png").stat().st_size > 0
+        assert json.loads((tmp_path / f"{output}.json").read_text())["ddqn"] == summary["ddqn"]
