@@ -16,24 +16,31 @@ from evojax_morph.ppo import Params, PPOConfig
 from evojax_morph.sharding import batch_mesh, replicated, shard_batch
 from evojax_morph.spaces import Space
 
-FITNESS_KINDS = ("ppo", "predefined")
+FITNESS_KINDS = ("ppo", "predefined", "tame")
 
 
 @dataclasses.dataclass(frozen=True)
 class FitnessConfig:
     """Which fitness, and its budgets.
 
-    kind: "ppo" (the return of a controller trained with PPO on the body, NGE-style) or
-      "predefined" (the space's hand-crafted deterministic fitness).
+    kind: "ppo" (the return of a controller trained with PPO on the body, NGE-style),
+      "predefined" (the space's hand-crafted deterministic fitness) or "tame" (task-agnostic:
+      how well random motor primitives can be told apart from where they leave the body, with
+      a pre-trained classifier; see `evojax_morph.tame`).
+    classifier: for "tame", the directory of a classifier saved by `python -m evojax_morph.tame`.
     """
 
     kind: str = "ppo"
     task: TaskConfig = TaskConfig()
     ppo: PPOConfig = PPOConfig()
+    classifier: str = ""
 
     def __post_init__(self):
         if self.kind not in FITNESS_KINDS:
             raise ValueError(f"unknown fitness {self.kind!r}; choose one of {', '.join(FITNESS_KINDS)}")
+        if self.kind == "tame" and not self.classifier:
+            raise ValueError("the tame fitness needs classifier= the directory of a trained TAME classifier "
+                             "(train one with `python -m evojax_morph.tame --space SPACE --out DIR`)")
         self.ppo.validate()
 
 
@@ -53,6 +60,21 @@ def _predefined(space: Space):
     return jax.jit(jax.vmap(space.predefined_fitness))
 
 
+def _tame(space: Space, cfg: FitnessConfig):
+    """The vmapped TAME fitness of cfg.classifier, checked to be trained on `space`."""
+    from evojax_morph import tame
+
+    trained_on, _, fitness = tame.load_fitness(str(cfg.classifier))
+    if trained_on != space.name:
+        raise ValueError(f"the TAME classifier in {cfg.classifier!r} was trained on {trained_on}, not {space.name}")
+    return fitness
+
+
+@functools.lru_cache(maxsize=16)
+def _tame_compiled(space: Space, cfg: FitnessConfig, mesh):
+    return jax.jit(shard_batch(_tame(space, cfg), mesh))
+
+
 @functools.lru_cache(maxsize=16)
 def _compiled(space: Space, cfg: FitnessConfig, mesh):
     """(init, train) vmapped over morphologies, the batch split across `mesh`, jitted; cached.
@@ -67,7 +89,7 @@ def _compiled(space: Space, cfg: FitnessConfig, mesh):
 def make_fitness_fn(space: Space, cfg: FitnessConfig, mesh=None):
     """`(init, fitness)`, pure and jittable, for use inside a larger jitted loop.
 
-    init(key) -> params of one controller (a dummy scalar for the predefined fitness);
+    init(key) -> params of one controller (a dummy scalar for the fitnesses without one);
     fitness(keys (B,), morphs (B, ...), params (B, ...)) -> (fitness (B,), params (B, ...)):
     the PPO fitness trains each body starting from the given controller (inheritance), the
     batch split across the devices of `mesh` (default: all; see `sharding.batch_mesh`).
@@ -76,6 +98,9 @@ def make_fitness_fn(space: Space, cfg: FitnessConfig, mesh=None):
         return (lambda key: jnp.zeros(())), (
             lambda keys, morphs, params: (jax.vmap(space.predefined_fitness)(morphs), params)
         )
+    if cfg.kind == "tame":
+        tame_fitness = shard_batch(_tame(space, cfg), mesh)
+        return (lambda key: jnp.zeros(())), (lambda keys, morphs, params: (tame_fitness(keys, morphs)[0], params))
     init, train = ppo.make_train(space, cfg.task, cfg.ppo)
 
     def fitness_one(key, morph, params):
@@ -122,6 +147,14 @@ def evaluate(
         fitness = _predefined(space)(morphs)
         zeros = jnp.zeros_like(fitness)
         return FitnessResult(fitness, zeros, zeros.astype(bool), init_params, zeros, zeros, env_steps=0)
+    if cfg.kind == "tame":
+        from evojax_morph.tame import load_fitness
+
+        fitness, diverged = _tame_compiled(space, cfg, batch_mesh() if mesh is None else mesh)(keys, morphs)
+        zeros = jnp.zeros_like(fitness)
+        tame_cfg = load_fitness(str(cfg.classifier))[1]
+        steps = tame_cfg.episodes * tame_cfg.episode_length
+        return FitnessResult(fitness, zeros, diverged, init_params, zeros, zeros, env_steps=steps)
 
     init, train = _compiled(space, cfg, batch_mesh() if mesh is None else mesh)
     if init_params is None:

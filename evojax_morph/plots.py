@@ -1,4 +1,4 @@
-"""Figures of a run: the learning curve and the morphologies of the greedy trajectory."""
+"""Figures: a run's learning curve, the morphologies of its greedy trajectory, TAME's training."""
 
 from __future__ import annotations
 
@@ -70,6 +70,23 @@ def plot_trajectory(path, space: Space, morphs: list[Morphology], fitness: list[
         if i:
             title = f"{actions[i - 1]}\n" + title
         ax.set_title(title, fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_tame_history(path, history: list[dict]) -> None:
+    """The TAME classifier per generation: log-likelihood per motor and accuracy, on the bodies
+    it trains on and on held-out bodies, against chance."""
+    gens = [h["generation"] for h in history]
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    for ax, metric in zip(axes, ("loglik", "accuracy")):
+        ax.plot(gens, [h[f"train_{metric}"] for h in history], label="training bodies (their rollouts)")
+        if "held_out_" + metric in history[0]:
+            ax.plot(gens, [h[f"held_out_{metric}"] for h in history], label="held-out bodies")
+        ax.axhline(history[0][f"chance_{metric}"], color="0.5", ls="--", label="chance")
+        ax.set(xlabel="generation", ylabel="log q per motor" if metric == "loglik" else "accuracy")
+    axes[0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -26,7 +26,7 @@ from evojax_morph.evolution import EvolutionEnv
 from evojax_morph.fitness import make_fitness_fn
 from evojax_morph.sharding import barrier, batch_mesh, init_distributed, replicated, to_host
 
-FITNESS_SCALE = {"ppo": 100.0}  # typical fitness magnitude; rewards are divided by it
+FITNESS_SCALE = {"ppo": 100.0, "tame": 1.0}  # typical fitness magnitude; rewards are divided by it
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,7 +34,8 @@ class RunConfig:
     """Everything that defines a run; saved as config.json, reloaded by --resume."""
 
     space: str = "bad_walker"
-    fitness: str = "ppo"  # ppo | predefined
+    fitness: str = "ppo"  # ppo | predefined | tame
+    classifier: str = ""  # tame: directory of the trained classifier
     agent: str = "ddqn"
     steps: int = 40  # environment steps; each mutates every parallel evolution once
     seed: int = 0
@@ -62,7 +63,8 @@ def gpu_defaults() -> dict:
 def build(cfg: RunConfig):
     space = em.make_space(cfg.space)
     fit_cfg = em.FitnessConfig(
-        kind=cfg.fitness, ppo=em.PPOConfig(train_steps=cfg.train_steps, num_envs=16, unroll_length=20)
+        kind=cfg.fitness, ppo=em.PPOConfig(train_steps=cfg.train_steps, num_envs=16, unroll_length=20),
+        classifier=cfg.classifier,
     )
     init_fn, fitness_fn = make_fitness_fn(space, fit_cfg)
     horizon = cfg.resolved_horizon()
@@ -149,9 +151,10 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
     defaults = dataclasses.replace(RunConfig(), **gpu_defaults()) if gpu else RunConfig()
     add = parser.add_argument
     add("--space", default=defaults.space, help=f"morphology space: {', '.join(em.list_spaces())}")
-    add("--fitness", default=defaults.fitness, choices=["ppo", "predefined"],
+    add("--fitness", default=defaults.fitness, choices=["ppo", "predefined", "tame"],
         help="ppo: return of a controller trained with PPO on the body (inherited from the parent); "
-        "predefined: the space's hand-crafted fitness")
+        "predefined: the space's hand-crafted fitness; tame: task-agnostic, with --classifier")
+    add("--classifier", default="", help="tame: directory of a classifier trained by `python -m evojax_morph.tame`")
     add("--agent", default=defaults.agent, choices=list(agents.AGENTS),
         help="who chooses the mutations: ddqn (Double-DQN), a2c (actor-critic), or the baselines random "
         "(random mutation walks) and evolution (a population, random mutations, the fittest survive)")
@@ -179,8 +182,16 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
             parser.error(f"--{name.replace('_', '-')} must be positive, got {getattr(args, name)}")
     if args.horizon < 0:
         parser.error("--horizon must be >= 0")
+    if args.fitness == "tame" and not args.resume:
+        meta = Path(args.classifier) / "tame.json"
+        if not args.classifier or not meta.exists():
+            parser.error("--fitness tame needs --classifier DIR, a classifier trained by "
+                         f"`python -m evojax_morph.tame --space {args.space} --out DIR`")
+        if json.loads(meta.read_text())["space"] != args.space:
+            parser.error(f"the classifier in {args.classifier!r} was trained on another space than {args.space}")
     cfg = RunConfig(
         space=args.space, fitness=args.fitness, agent=args.agent, steps=args.steps, seed=args.seed,
+        classifier=str(Path(args.classifier).resolve()) if args.classifier else "",
         num_envs=args.num_envs, horizon=args.horizon, train_steps=args.train_steps, hidden=args.hidden,
         explore_steps=args.explore_steps, learning_starts=args.learning_starts,
         chunk=args.chunk, checkpoint_every=args.checkpoint_every,
