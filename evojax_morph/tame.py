@@ -56,6 +56,9 @@ from evojax_morph.morphology import Morphology, stack
 from evojax_morph.spaces import Space, make_space
 
 STATE_SIZE = 4  # per node: dx, dz, cos(pitch), sin(pitch)
+# On the CPU backend (jaxlib 0.10.2, 2 cores) a vmapped MJX rollout of 2,784 or more worlds in one
+# call never returns (2,752 runs); batches of bodies are split so that a call holds fewer.
+CPU_MAX_WORLDS = 2048
 
 
 @dataclasses.dataclass(frozen=True)
@@ -238,6 +241,15 @@ def _init_params(space: Space, cfg: TameConfig, key: jax.Array):
     return make_classifier(space, cfg).init(key, m, jnp.zeros((space.max_nodes, STATE_SIZE)))
 
 
+def over_bodies(fn, episodes: int):
+    """`fn(key, m)` mapped over (B,) keys and bodies: one vmap, or on the CPU a `lax.map` over
+    vmapped groups of at most CPU_MAX_WORLDS worlds (see there)."""
+    if jax.default_backend() != "cpu":
+        return jax.vmap(fn)
+    group = max(1, CPU_MAX_WORLDS // episodes)
+    return lambda keys, morphs: jax.lax.map(lambda a: fn(*a), (keys, morphs), batch_size=group)
+
+
 @functools.lru_cache(maxsize=4)
 def load_fitness(path: str):
     """(space name, TameConfig, fitness(keys (B,), morphs (B, ...)) -> (fitness (B,), diverged
@@ -245,7 +257,7 @@ def load_fitness(path: str):
     pre = Pretrained.load(path)
     tame = Tame(make_space(pre.space), pre.config)
     params = pre.params
-    return pre.space, pre.config, jax.vmap(lambda key, m: tame.fitness(params, key, m))
+    return pre.space, pre.config, over_bodies(lambda key, m: tame.fitness(params, key, m), pre.config.episodes)
 
 
 def pretrain(
