@@ -127,12 +127,18 @@ def log_likelihood(classifier: Classifier, params, m: Morphology, r: Rollouts):
     return loglik, right / jnp.maximum(r.labelled.sum(), 1)
 
 
-def fitness_from(cfg: TameConfig, loglik: jax.Array, r: Rollouts) -> jax.Array:
-    """F(m) from the (E,) log-likelihoods of one body's rollouts (the module docstring)."""
+def fitness_terms(cfg: TameConfig, loglik: jax.Array, r: Rollouts) -> tuple[jax.Array, jax.Array]:
+    """The two terms of F(m) (the module docstring) from the (E,) log-likelihoods of one body's
+    rollouts: control = sum_j (log K + E[log q]) and coverage = 1/2 log det(I + Cov / sigma^2)."""
     control = r.labelled.sum() * math.log(cfg.num_primitives) + loglik.mean()
     moved = r.states[:, 0, :2] - r.states[:, 0, :2].mean(0)  # trunk displacement, centred
     cov = moved.T @ moved / r.states.shape[0]
-    coverage = 0.5 * jnp.linalg.slogdet(jnp.eye(2) + cov / cfg.state_noise**2)[1]
+    return control, 0.5 * jnp.linalg.slogdet(jnp.eye(2) + cov / cfg.state_noise**2)[1]
+
+
+def fitness_from(cfg: TameConfig, loglik: jax.Array, r: Rollouts) -> jax.Array:
+    """F(m) = control + cfg.coverage x coverage."""
+    control, coverage = fitness_terms(cfg, loglik, r)
     return control + cfg.coverage * coverage
 
 
@@ -241,6 +247,13 @@ def _init_params(space: Space, cfg: TameConfig, key: jax.Array):
     return make_classifier(space, cfg).init(key, m, jnp.zeros((space.max_nodes, STATE_SIZE)))
 
 
+def pick_held_out(num_bodies: int, fraction: float, seed: int) -> list[int]:
+    """Sorted indices of round(fraction x (num_bodies - 1)) bodies drawn at random from 1 ..
+    num_bodies - 1 of an `enumerate_bodies` list (index 0 is m0, which starts every genealogy)."""
+    pick = np.random.default_rng(seed).permutation(num_bodies - 1)[: round(fraction * (num_bodies - 1))]
+    return sorted(int(i) + 1 for i in pick)
+
+
 def over_bodies(fn, episodes: int):
     """`fn(key, m)` mapped over (B,) keys and bodies: one vmap, or on the CPU a `lax.map` over
     vmapped groups of at most CPU_MAX_WORLDS worlds (see there)."""
@@ -282,7 +295,6 @@ def pretrain(
     genealogy: a mutation that would make one is drawn again (up to 20 times; then the parent is
     copied). Their own rollouts, drawn once, measure the classifier every generation.
     """
-    from evojax_morph.evolution import random_valid_actions
     from evojax_morph.landscape import canonical
 
     tame = Tame(space, cfg)
@@ -300,10 +312,7 @@ def pretrain(
                  for i in range(0, len(bodies), population)]
         return jax.tree.map(lambda *x: jnp.concatenate(x)[:n], *parts)
 
-    @jax.jit
-    def mutate(key, m):
-        action = random_valid_actions(key, space.action_mask(m).reshape(1, -1))[0]
-        return space.mutate(m, action // space.num_mutations, action % space.num_mutations)
+    mutate = jax.jit(space.random_mutation)
 
     def child_of(key, parent) -> Morphology:
         for attempt in jax.random.split(key, 20):
@@ -330,6 +339,7 @@ def pretrain(
     buffer = jax.tree.map(lambda x: jnp.zeros((capacity, *x.shape[1:]), x.dtype).at[: len(bodies)].set(x), new)
     morphs = jax.tree.map(lambda x: jnp.repeat(x[:1], capacity, 0).at[: len(bodies)].set(x), stack(bodies))
     held = rollouts(k_held, held_out) if held_out else None
+    held_morphs = stack(list(held_out)) if held_out else None
 
     params = _init_params(space, cfg, jax.random.fold_in(key, 1))
     opt = optax.adam(learning_rate)
@@ -387,7 +397,7 @@ def pretrain(
                "chance_loglik": -math.log(cfg.num_primitives), "chance_accuracy": 1 / cfg.num_primitives,
                "best_fitness": float(fit.max())}
         if held is not None:
-            unseen, _ = measure(params, stack(list(held_out)), held, len(held_out))
+            unseen, _ = measure(params, held_morphs, held, len(held_out))
             row.update(held_out_loglik=unseen["loglik"], held_out_accuracy=unseen["accuracy"])
         history.append(row)
         bar.set_postfix(train_acc=f"{row['train_accuracy']:.2f}", held_out_acc=f"{row.get('held_out_accuracy', np.nan):.2f}")
@@ -440,9 +450,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out or f"runs/tame-{args.space}-seed{args.seed}")
 
     bodies, _ = enumerate_bodies(space, args.held_out_depth)
-    candidates = bodies[1:]  # m0 starts every genealogy
-    pick = np.random.default_rng(args.seed).permutation(len(candidates))[: round(args.held_out * len(candidates))]
-    held_out = [candidates[i] for i in sorted(pick)]
+    held_out = [bodies[i] for i in pick_held_out(len(bodies), args.held_out, args.seed)]
     print(f"TAME on {space.name}: {len(held_out)} of {len(bodies)} bodies within {args.held_out_depth} "
           f"mutations held out; {args.generations} generations of {args.population}")
     pre = pretrain(space, jax.random.PRNGKey(args.seed), cfg, args.population, args.generations, held_out,

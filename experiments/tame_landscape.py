@@ -42,13 +42,11 @@ def terms(pre: tame.Pretrained, bodies, key):
 
     def one(k, m):
         r = t.rollout(k, m)
-        loglik, _ = tame.log_likelihood(t.classifier, pre.params, m, r)
-        control = tame.fitness_from(dataclasses.replace(pre.config, coverage=0.0), loglik, r)
-        return tame.fitness_from(pre.config, loglik, r), control
+        return tame.fitness_terms(pre.config, tame.log_likelihood(t.classifier, pre.params, m, r)[0], r)
 
-    f, control = jax.device_get(jax.jit(tame.over_bodies(one, pre.config.episodes))(
+    control, coverage = jax.device_get(jax.jit(tame.over_bodies(one, pre.config.episodes))(
         jax.random.split(key, len(bodies)), em.stack(bodies)))
-    return f, control, (f - control) / max(pre.config.coverage, 1e-12)
+    return control + pre.config.coverage * coverage, control, coverage
 
 
 def rho(x, y) -> float:
@@ -73,10 +71,8 @@ def main():
     ls = landscape.Landscape.load(args.landscape)
     space = em.make_space(ls.space)
     bodies = [em.Morphology.from_dict(b) for b in ls.bodies]
-    m0 = ls.index(space.initial())
-    candidates = [i for i in range(len(bodies)) if i != m0]
-    rng = np.random.default_rng(args.seed)
-    held = sorted(rng.permutation(candidates)[: round(args.held_out * len(candidates))].tolist())
+    assert ls.index(space.initial()) == 0, "landscapes list bodies as enumerate_bodies does, m0 first"
+    held = tame.pick_held_out(len(bodies), args.held_out, args.seed)
     cfg = tame.TameConfig(episodes=args.episodes)
     summary = {"landscape": args.landscape, "bodies": len(bodies), "held_out_bodies": [ls.keys[i] for i in held],
                "config": dataclasses.asdict(cfg), "population": args.population, "generations": args.generations,

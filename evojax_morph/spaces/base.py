@@ -110,14 +110,15 @@ class Space(abc.ABC):
                 f"of this {self.name} morphology (see space.action_mask)"
             )
 
+    def random_mutation(self, key: jax.Array, m: Morphology) -> Morphology:
+        """`m` after one valid mutation, drawn uniformly over the valid actions."""
+        mask = self.action_mask(m).reshape(-1)
+        action = jax.random.categorical(key, jnp.where(mask, 0.0, -jnp.inf))
+        return self.mutate(m, action // self.num_mutations, action % self.num_mutations)
+
     def random_morphology(self, key: jax.Array, num_mutations: int) -> Morphology:
         """A random walk of `num_mutations` valid mutations from m0, uniform over valid actions."""
-
-        def step(m, key):
-            mask = self.action_mask(m).reshape(-1)
-            action = jax.random.categorical(key, jnp.where(mask, 0.0, -jnp.inf))
-            return self.mutate(m, action // self.num_mutations, action % self.num_mutations), None
-
+        step = lambda m, key: (self.random_mutation(key, m), None)  # noqa: E731
         m, _ = jax.lax.scan(step, self.initial(), jax.random.split(key, num_mutations))
         return m
 
