@@ -2,7 +2,10 @@
 
 `make_train(space, task_cfg, ppo_cfg)` returns `init(key) -> Params` and
 `train(key, morph, params) -> TrainResult`; `jax.jit(jax.vmap(train))` trains a batch of
-different bodies, each with `num_envs` worlds, in one compiled call. It is built from brax's PPO
+different bodies, each with `controllers` x `num_envs` worlds, in one compiled call. With
+`controllers` K > 1 every body trains K independent controllers side by side (parameters with a
+leading (K,) axis, all inherited by a child) and its fitness is their mean: one PPO run is a
+noisy measure of a body, since a controller either finds a gait or does not. It is built from brax's PPO
 parts (networks, GAE, running observation statistics); the log-probability and entropy are our
 own, masked to the motors a body has, since brax's sum over every action dimension of the
 padded template. Parameter shapes are the same for every body of a space, so a child can start
@@ -49,6 +52,7 @@ class PPOConfig:
     policy_hidden: tuple[int, ...] = (32, 32)
     value_hidden: tuple[int, ...] = (64, 64)
     eval_episodes: int = 4  # deterministic episodes of episode_length after training
+    controllers: int = 1  # K independent controllers per body; the fitness is their mean
 
     @property
     def num_updates(self) -> int:
@@ -60,8 +64,8 @@ class PPOConfig:
             raise ValueError("train_steps must be >= 0, num_envs and unroll_length >= 1")
         if batch % self.num_minibatches:
             raise ValueError(f"num_envs x unroll_length ({batch}) must divide into {self.num_minibatches} minibatches")
-        if self.eval_episodes < 1:
-            raise ValueError("eval_episodes must be at least 1")
+        if self.eval_episodes < 1 or self.controllers < 1:
+            raise ValueError("eval_episodes and controllers must be at least 1")
 
 
 class Params(NamedTuple):
@@ -84,9 +88,10 @@ class Transition(NamedTuple):
 
 @struct.dataclass
 class TrainResult:
-    params: Params  # the trained controller
-    fitness: jax.Array  # (): mean return of the deterministic evaluation episodes
-    fitness_std: jax.Array  # (): their standard deviation
+    params: Params  # the trained controller; with K > 1 controllers, a leading (K,) axis
+    fitness: jax.Array  # (): mean return of the deterministic evaluation episodes (of all K)
+    fitness_std: jax.Array  # (): standard deviation of the K controllers' mean returns (K > 1),
+    # else of the evaluation episodes' returns
     diverged: jax.Array  # () bool: some simulation diverged (its reward was zeroed)
     train_return: jax.Array  # (): mean over envs of each env's last finished training episode
     entropy: jax.Array  # (): policy entropy per active motor at the end of training
@@ -136,6 +141,12 @@ def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig
     minibatch = num_envs * horizon // cfg.num_minibatches
 
     def init(key: jax.Array) -> Params:
+        """Fresh parameters: one controller, or K stacked along a leading axis."""
+        if cfg.controllers == 1:
+            return init_one(key)
+        return jax.vmap(init_one)(jax.random.split(key, cfg.controllers))
+
+    def init_one(key: jax.Array) -> Params:
         key_policy, key_value = jax.random.split(key)
         obs_spec = jax.ShapeDtypeStruct((env.obs_size,), jnp.zeros(()).dtype)
         return Params(
@@ -161,10 +172,21 @@ def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig
         # Full float32 matmuls wherever train is traced (em.evaluate, the agents' loops): TF32 on
         # GPUs perturbs physics and PPO more than RL tolerates.
         with jax.default_matmul_precision("highest"):
-            return _train(key, morph, params)
+            model = space.mjx_model(morph)
+            if cfg.controllers == 1:
+                return train_one(key, model, params)
+            keys = jax.random.split(key, cfg.controllers)
+            out = jax.vmap(train_one, (0, None, 0))(keys, model, params)
+            return TrainResult(
+                params=out.params,
+                fitness=out.fitness.mean(),
+                fitness_std=out.fitness.std(),
+                diverged=out.diverged.any(),
+                train_return=out.train_return.mean(),
+                entropy=out.entropy.mean(),
+            )
 
-    def _train(key: jax.Array, morph: Morphology, params: Params) -> TrainResult:
-        model = space.mjx_model(morph)
+    def train_one(key: jax.Array, model, params: Params) -> TrainResult:
         mask = env.action_mask(model)
         num_active = jnp.maximum(mask.sum(), 1)
         reset = jax.vmap(env.reset, (0, None))
@@ -297,4 +319,4 @@ def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig
 def env_steps_per_morphology(task_cfg: TaskConfig, cfg: PPOConfig) -> int:
     """Control steps one `train` call takes per morphology: training plus evaluation."""
     train = cfg.num_updates * cfg.num_envs * cfg.unroll_length if cfg.train_steps else 0
-    return train + cfg.eval_episodes * task_cfg.episode_length
+    return cfg.controllers * (train + cfg.eval_episodes * task_cfg.episode_length)

@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from test_spaces import reachable
 
 import evojax_morph as em
@@ -76,14 +77,13 @@ def test_masked_actions_are_never_chosen():
     assert buf.size == 40 * NUM_ENVS and chosen_valid.all()
 
 
-def test_greedy_policy_finds_the_predefined_optimum():
-    """In at least 4 of 5 seeds, the greedy rollout from m0 ends at the best body of the space."""
+def greedy_success(seeds) -> np.ndarray:
+    """(S,) bool: whether the greedy rollout from m0 ends at the space's best body, after
+    CHUNKS x CHUNK steps of training, for each seed; every seed in one vmapped call."""
     space, env, (init, chunk, q_fn) = make()
-    morphs = reachable(space)
-    optimum = float(jnp.max(jax.vmap(space.predefined_fitness)(em.stack(morphs))))
+    optimum = float(jnp.max(jax.vmap(space.predefined_fitness)(em.stack(reachable(space)))))
     greedy_env = EvolutionEnv(space, env.fitness_fn, env.init_fn, horizon=HORIZON, num_envs=1)
 
-    @jax.jit
     def greedy_final(params):
         obs, evo = greedy_env.reset(jax.random.PRNGKey(0))
         for k in range(HORIZON):
@@ -91,11 +91,18 @@ def test_greedy_policy_finds_the_predefined_optimum():
             obs, evo, *_ = greedy_env.step(jax.random.PRNGKey(k), evo, action)
         return evo.fitness[0]
 
-    found = 0
-    for seed in range(5):
-        state = jax.jit(init)(jax.random.PRNGKey(seed))
-        for _ in range(CHUNKS):
-            state, metrics = chunk(state, CHUNK)
-        assert np.isfinite(metrics["loss"]).all()
-        found += abs(float(greedy_final(state.params)) - optimum) < 1e-6
-    assert found >= 4, found
+    states = jax.jit(jax.vmap(init))(jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds)))
+    run_chunk = jax.jit(jax.vmap(lambda s: chunk(s, CHUNK)))
+    for _ in range(CHUNKS):
+        states, metrics = run_chunk(states)
+    assert np.isfinite(metrics["loss"]).all()
+    return np.abs(np.asarray(jax.jit(jax.vmap(greedy_final))(states.params)) - optimum) < 1e-6
+
+
+@pytest.mark.learning
+def test_greedy_policy_finds_the_predefined_optimum():
+    """In most seeds the greedy rollout from m0 ends at the best body of the space."""
+    found = greedy_success(range(12))
+    # Measured on 2 CPU cores (jax 0.10.2): 12 of these 12 seeds; 39 of 42 seeds (0-41), so 12 draws
+    # of a 0.93 success rate fall below 9 about once in 100 (Binomial).
+    assert found.mean() >= 0.75, found

@@ -14,11 +14,14 @@ import evojax_morph as em
 from evojax_morph import ppo
 from evojax_morph.spaces import bad_walker as bw
 
-# One small budget for every test that trains, so the suite compiles PPO once per batch size,
-# and one that only evaluates the controller it is given.
+# One small budget for every test that trains, so the suite compiles PPO once, and one that only
+# evaluates the controller it is given.
 CFG = em.FitnessConfig(ppo=em.PPOConfig(train_steps=40_000, num_envs=16, unroll_length=20))
 EVAL_ONLY = em.FitnessConfig(ppo=dataclasses.replace(CFG.ppo, train_steps=0))
-SEEDS = 3
+# Seeds of every learning statistic below: one PPO run is a coin with a bias (a gait is found or
+# not), so the tests assert medians over seeds, with margins measured over 20 other seeds by
+# `python -m experiments.learning_margins --seeds 20` (2 CPU cores, jax 0.10.2).
+SEEDS = 12
 
 
 @pytest.fixture(scope="module")
@@ -35,25 +38,19 @@ def footless(space):
 
 @pytest.fixture(scope="module")
 def trained(walker):
-    """Generation 1: three seeds of m* from scratch, a body with no motor, and a child body.
-
-    Generation 2: the child trained from each parent's controller, and from scratch, same budget.
-    Both generations go through one jitted, vmapped `train`, traced once (jit-once check).
-    """
+    """SEEDS seeds of m* trained from scratch, a body with no motor, and children of m*, in one
+    jitted, vmapped `train` call; and the evaluation-only `train`, vmapped and traced once for
+    every batch of bodies below (jit-once check)."""
     chex.clear_trace_counter()
     init, train = ppo.make_train(walker, CFG.task, CFG.ppo)
-    train = jax.jit(jax.vmap(chex.assert_max_traces(train, n=1)))
+    _, evaluate = ppo.make_train(walker, EVAL_ONLY.task, EVAL_ONLY.ppo)
+    evaluate = jax.jit(jax.vmap(chex.assert_max_traces(evaluate, n=1)))
     child = walker.mutate(walker.optimum(), bw.FRONT, 2)  # front foot one site inward
     keys = jax.random.split(jax.random.PRNGKey(0), 2 * SEEDS)
     fresh = jax.jit(jax.vmap(init))(keys)
-
     gen1 = em.stack([walker.optimum()] * SEEDS + [footless(walker)] + [child] * (SEEDS - 1))
-    out1 = train(keys, gen1, fresh)
-    inherited = jax.tree.map(lambda p: jnp.concatenate([p[:SEEDS], p[:SEEDS]]), out1.params)
-    fresh_half = jax.tree.map(lambda a, b: jnp.concatenate([a[:SEEDS], b[SEEDS:]]), inherited, fresh)
-    gen2 = em.stack([child] * (2 * SEEDS))
-    out2 = train(jax.random.split(jax.random.PRNGKey(1), 2 * SEEDS), gen2, fresh_half)
-    return gen1, keys, out1, out2, fresh
+    out1 = jax.jit(jax.vmap(train))(keys, gen1, fresh)
+    return gen1, keys, out1, fresh, child, evaluate
 
 
 def zero_controller(params):
@@ -61,27 +58,43 @@ def zero_controller(params):
     return params._replace(policy=jax.tree.map(jnp.zeros_like, params.policy))
 
 
+@pytest.mark.learning
 def test_m_star_learns_to_walk(walker, trained):
-    _, keys, out1, _, fresh = trained
-    pick = lambda tree: jax.tree.map(lambda x: x[:SEEDS], tree)
-    morphs = em.stack([walker.optimum()] * SEEDS)
-    zero = em.evaluate(walker, morphs, keys[:SEEDS], EVAL_ONLY, zero_controller(pick(fresh))).fitness
-    zero = np.asarray(zero)
+    gen1, keys, out1, fresh, _, evaluate = trained
+    zero = np.asarray(evaluate(keys, gen1, zero_controller(fresh)).fitness[:SEEDS])  # m* stands still
     learned = np.asarray(out1.fitness[:SEEDS])
-    # 50 = 1 m further in 5 s than standing still, in every seed.
-    assert np.all(learned > zero + 50), (learned, zero)
+    # 50 = 1 m further in 5 s than standing still. Measured over 20 other seeds: learned minus
+    # zero-controller fitness has median 167 (range 21 to 330; a seed that finds no gait stays
+    # near 30), and a 12-seed median falls below 104 once in 100 (bootstrap).
+    assert np.median(learned - zero) > 50, (learned, zero)
     assert np.all(np.isfinite(np.asarray(out1.fitness))) and not np.asarray(out1.diverged).any()
 
 
 def test_no_motor_no_fitness(trained):
-    _, _, out1, _, _ = trained
+    _, _, out1, _, _, _ = trained
     assert abs(float(out1.fitness[SEEDS])) < 1.0  # a trunk alone cannot move itself
 
 
-def test_inherited_controller_beats_scratch(trained):
-    _, _, _, out2, _ = trained
-    inherited, scratch = np.asarray(out2.fitness[:SEEDS]), np.asarray(out2.fitness[SEEDS:])
-    assert inherited.mean() > scratch.mean() + 20, (inherited, scratch)
+@pytest.mark.learning
+def test_inherited_controller_hands_over_a_gait(trained):
+    """A child evaluated with its parent's trained controller, before any training of its own,
+    walks further than with a fresh controller (the same keys).
+
+    That a child trained further from the inherited controller beats the same child trained from
+    scratch at the same budget is NOT asserted: over 20 seeds at this budget the difference had
+    median +34 but ranged from -160 to +499, and a 12-seed median fell below -74 once in 100
+    (experiments/learning_margins.py; on a GPU, docs/results.md, "Inheritance").
+    """
+    _, keys, out1, fresh, child, evaluate = trained
+    children = em.stack([child] * (2 * SEEDS))
+    parents = jax.tree.map(lambda x: x[:SEEDS], out1.params)
+    params = jax.tree.map(lambda a, b: jnp.concatenate([a, b[SEEDS:]]), parents, fresh)
+    child_keys = jnp.concatenate([keys[SEEDS:], keys[SEEDS:]])
+    fitness = np.asarray(evaluate(child_keys, children, params).fitness)
+    inherited, scratch = fitness[:SEEDS], fitness[SEEDS:]
+    # Measured over 20 other seeds: the difference has median 43 and was positive in all 20 (9 to
+    # 318); a 12-seed median falls below 13.8 once in 100 (bootstrap).
+    assert np.median(inherited - scratch) > 5, (inherited, scratch)
 
 
 def test_batch_equals_one_at_a_time(walker, trained):
@@ -93,7 +106,7 @@ def test_batch_equals_one_at_a_time(walker, trained):
     flips of near-zero gradients under a different reduction order become visible, and a
     walking gait can turn a 1e-7 difference into a fall.
     """
-    gen1, keys, _, _, fresh = trained
+    gen1, keys, _, fresh, _, _ = trained
     batch = em.evaluate(walker, gen1, keys, EVAL_ONLY, fresh)
     for i in (0, SEEDS, 2 * SEEDS - 1):
         pick = lambda tree: jax.tree.map(lambda x: x[i : i + 1], tree)  # noqa: B023

@@ -34,29 +34,60 @@ def test_masked_entropy_by_hand():
     np.testing.assert_allclose(a2c.masked_entropy(logits, mask), [np.log(3.0), 0.0], atol=1e-6)
 
 
-def test_actor_critic_learns_constructor():
-    """Episode returns (f_8 - f_0) rise from random play to near the space's best, and entropy falls."""
+def a2c_learning(seeds) -> tuple[np.ndarray, np.ndarray]:
+    """Per seed (one vmapped call): the rise of the mean episode return (f_8 - f_0) from the
+    first 5 episodes to the last 5 of 25, and the fall of the policy's entropy from the first 8
+    steps to the last 8, for the actor-critic on Constructor with the predefined fitness."""
     space, env = make_env("constructor", 16, 8)
     init, chunk, _ = agents.make_agent("a2c", env, hidden=32, reward_scale=1.0 / space.fitness_scale, unroll=8)
-    state, metrics = chunk(init(jax.random.PRNGKey(0)), 200)
-    returns = np.asarray(metrics["reward"]).reshape(25, 8, 16).sum(1).mean(1)  # (episodes,)
-    assert returns[-5:].mean() > returns[:5].mean() + 200, returns
-    assert metrics["entropy"][-8:].mean() < metrics["entropy"][:8].mean() - 0.5
+    keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))
+    _, metrics = jax.jit(jax.vmap(lambda s: chunk(s, 200)))(jax.jit(jax.vmap(init))(keys))
     assert np.isfinite(metrics["loss"]).all()
+    reward, entropy = np.asarray(metrics["reward"]), np.asarray(metrics["entropy"])  # (S, 200, 16), (S, 200)
+    returns = reward.reshape(len(reward), 25, 8, 16).sum(2).mean(2)  # (S, episodes)
+    rise = returns[:, -5:].mean(1) - returns[:, :5].mean(1)
+    return rise, entropy[:, :8].mean(1) - entropy[:, -8:].mean(1)
 
 
-def test_evolution_is_elitist_and_random_walks_restart():
-    space, env = make_env("bad_walker", 8, 4)
+@pytest.mark.learning
+def test_actor_critic_learns_constructor():
+    """Episode returns rise from random play towards the space's best, and the entropy falls."""
+    rise, fall = a2c_learning(range(12))
+    # Measured on 2 CPU cores (jax 0.10.2) over seeds 0-41: rise median 462 (range 335-610),
+    # entropy fall median 1.11 (range 0.43-1.93). A 12-seed median
+    # below 300 or 0.5 would take most seeds at the tail of those ranges.
+    assert np.median(rise) > 300, rise
+    assert np.median(fall) > 0.5, fall
+
+
+def evolution_search(seeds):
+    """Per seed (one vmapped call): best fitness per step (S, 12) and the final population's
+    fitness (S, 8) of (mu + lambda) evolution on Bad Walker with the predefined fitness."""
+    _, env = make_env("bad_walker", 8, 4)
     init, chunk, scores = agents.make_agent("evolution", env)
     assert scores is None
-    state, metrics = chunk(init(jax.random.PRNGKey(0)), 12)
-    best = np.asarray(metrics["best_fitness"])
-    assert (np.diff(best) >= 0).all()
-    # (mu + lambda) with a deterministic fitness: no survivor is worse than the m0 they all began as
-    optimum = max(float(space.predefined_fitness(m)) for m in reachable(space))
-    assert float(state.evo.fitness.min()) >= float(env.space.predefined_fitness(space.initial()))
-    assert best[-1] == pytest.approx(optimum)  # 96 evaluations find Bad Walker's best body
+    keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))
+    states, metrics = jax.jit(jax.vmap(lambda s: chunk(s, 12)))(jax.jit(jax.vmap(init))(keys))
+    return np.asarray(metrics["best_fitness"]), np.asarray(states.evo.fitness)
 
+
+@pytest.mark.learning
+def test_evolution_is_elitist_and_finds_the_optimum():
+    space = em.make_space("bad_walker")
+    best, population = evolution_search(range(12))
+    # Elitism, in every seed: the best never falls, and with a deterministic fitness no survivor
+    # is worse than the m0 they all began as.
+    assert (np.diff(best, axis=1) >= 0).all()
+    assert population.min() >= float(space.predefined_fitness(space.initial()))
+    # 96 evaluations find Bad Walker's best body in most seeds. Measured on 2 CPU cores (jax
+    # 0.10.2): 10 of these 12 seeds, 37 of seeds 0-41 (the others end at 1.83, one site short).
+    optimum = max(float(space.predefined_fitness(m)) for m in reachable(space))
+    found = np.abs(best[:, -1] - optimum) < 1e-6
+    assert found.mean() >= 0.5, best[:, -1]
+
+
+def test_random_walks_restart():
+    space, env = make_env("bad_walker", 8, 4)
     init, chunk, _ = agents.make_agent("random", env)
     state, metrics = chunk(init(jax.random.PRNGKey(1)), 8)  # two episodes: restarts at m0
     assert np.isfinite(np.asarray(metrics["fitness"])).all() and (state.evo.steps == 0).all()

@@ -1,0 +1,82 @@
+"""The statistics the PPO learning tests assert, over many seeds: where to put their thresholds.
+
+tests/test_fitness.py asserts medians over 12 seeds at a small CPU budget. This script measures
+the per-seed values over --seeds seeds (same bodies and budget as the tests, other keys) and the
+spread of a 12-seed median (bootstrap), so each threshold can sit well below what is observed:
+
+  m*          learned fitness of m* minus its zero-controller fitness (the same keys)
+  inherit0    child fitness with its parent's controller, untrained, minus with a fresh one
+  inherit     child trained from the parent's controller minus from scratch, same budget
+
+Run it under other CPUs' rounding too: XLA_FLAGS=--xla_cpu_max_isa=AVX2 (or AVX).
+
+  python -m experiments.learning_margins --seeds 30
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import evojax_morph as em
+from evojax_morph import ppo
+from evojax_morph.spaces import bad_walker as bw
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seeds", type=int, default=30)
+    parser.add_argument("--train-steps", type=int, default=40_000)
+    parser.add_argument("--subset", type=int, default=12, help="seeds per test statistic")
+    parser.add_argument("--offset", type=int, default=100, help="key offset (the tests use 0)")
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args(argv)
+    walker = em.make_space("bad_walker")
+    cfg = em.PPOConfig(train_steps=args.train_steps, num_envs=16, unroll_length=20)
+    n = args.seeds
+    init, train = ppo.make_train(walker, em.TaskConfig(), cfg)
+    train = jax.jit(jax.vmap(train))
+    _, evaluate = ppo.make_train(walker, em.TaskConfig(), em.PPOConfig(train_steps=0, num_envs=16))
+    evaluate = jax.jit(jax.vmap(evaluate))
+    child = walker.mutate(walker.optimum(), bw.FRONT, 2)  # front foot one site inward
+    keys = jax.random.split(jax.random.PRNGKey(args.offset), 2 * n)
+    fresh = jax.jit(jax.vmap(init))(keys)
+    zero = lambda p: p._replace(policy=jax.tree.map(jnp.zeros_like, p.policy))
+    half = lambda tree, i: jax.tree.map(lambda x: x[i * n : (i + 1) * n], tree)
+
+    stars, children = em.stack([walker.optimum()] * n), em.stack([child] * n)
+    out1 = train(keys[:n], stars, half(fresh, 0))
+    parents = out1.params
+    zero_fit = evaluate(keys[:n], stars, zero(half(fresh, 0))).fitness
+    inherited0 = evaluate(keys[n:], children, parents).fitness
+    fresh0 = evaluate(keys[n:], children, half(fresh, 1)).fitness
+    inherited = train(keys[n:], children, parents).fitness
+    scratch = train(keys[n:], children, half(fresh, 1)).fitness
+    values = {
+        "m*": np.asarray(out1.fitness - zero_fit),
+        "inherit0": np.asarray(inherited0 - fresh0),
+        "inherit": np.asarray(inherited - scratch),
+    }
+    rng = np.random.default_rng(0)
+    report = {"xla_flags": os.environ.get("XLA_FLAGS", ""), "seeds": n, "train_steps": args.train_steps,
+              "m*_learned": np.asarray(out1.fitness).round(1).tolist(), "zero": np.asarray(zero_fit).round(2).tolist()}
+    for name, v in values.items():
+        medians = np.median(rng.choice(v, (2000, args.subset)), 1)
+        report[name] = {"values": v.round(1).tolist(), "median": float(np.median(v)),
+                        "median_of_subset_p01": float(np.quantile(medians, 0.01)),
+                        "median_of_subset_p05": float(np.quantile(medians, 0.05))}
+        print(f"{name:>9}: median {np.median(v):8.1f}, {args.subset}-seed median 1% / 5% quantile "
+              f"{report[name]['median_of_subset_p01']:8.1f} / {report[name]['median_of_subset_p05']:8.1f}; "
+              f"values {np.sort(v).round(0).tolist()}", flush=True)
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(report, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
