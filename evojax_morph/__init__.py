@@ -1,7 +1,8 @@
 """evojax_morph: robot morphology design as a Markov Decision Process, on JAX and MJX."""
 
 from evojax_morph import physics  # noqa: F401  (first: it imports mjx quietly)
-from evojax_morph.fitness import FitnessConfig, FitnessResult, evaluate, init_params
+from evojax_morph.fitness import evaluate, init_params
+from evojax_morph.fitnesses import FitnessConfig, FitnessResult, list_fitnesses
 from evojax_morph.locomotion import Locomotion, TaskConfig
 from evojax_morph.morphology import Morphology, format_tree, stack, unstack
 from evojax_morph.ppo import Params, PPOConfig, make_train
@@ -22,6 +23,7 @@ __all__ = [
     "format_tree",
     "init_distributed",
     "init_params",
+    "list_fitnesses",
     "list_spaces",
     "make_space",
     "make_train",

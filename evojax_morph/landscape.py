@@ -1,8 +1,8 @@
 """Exhaustive fitness landscapes: every body reachable from m0, measured over several seeds.
 
-Bodies are told apart by `canonical`, which ignores slot numbers and sibling order: two bodies
-are the same when their trees of (kind, site, attributes) are, so Bad Walker's two identical
-short feet swapped give one body. A `Landscape` stores each body's mean and std of fitness and
+Bodies are those of `Space.enumerate_bodies`, told apart by `Space.canonical`, which ignores slot
+numbers and sibling order: two bodies are the same when their trees of (kind, site, attributes)
+are, so Bad Walker's two identical short feet swapped give one body. A `Landscape` stores each body's mean and std of fitness and
 answers the rank and regret of any body an agent finds.
 """
 
@@ -17,43 +17,7 @@ import numpy as np
 
 from evojax_morph.fitness import FitnessConfig, evaluate
 from evojax_morph.morphology import Morphology, stack
-from evojax_morph.spaces import Space
-
-
-def canonical(m: Morphology) -> str:
-    """A string naming the body's shape: equal for bodies that differ only in slot numbers."""
-    m = jax.device_get(m)
-
-    def name(node: int) -> str:
-        children = sorted(name(j) for j in range(1, m.max_nodes) if m.active[j] and int(m.parent[j]) == node)
-        attrs = ",".join(f"{a:.6g}" for a in np.asarray(m.attrs[node], float))
-        return f"{int(m.kind[node])}@{int(m.site[node])}[{attrs}](" + " ".join(children) + ")"
-
-    return name(0)
-
-
-def enumerate_bodies(space: Space, max_depth: int | None = None) -> tuple[list[Morphology], list[int]]:
-    """Every distinct body within `max_depth` mutations of m0 (None: all), breadth first.
-
-    Returns (bodies, depths): m0 first, each body at the fewest mutations that reach it.
-    """
-    mutate, action_mask = jax.jit(space.mutate), jax.jit(space.action_mask)
-    m0 = jax.device_get(space.initial())
-    seen, bodies, depths, frontier, depth = {canonical(m0)}, [m0], [0], [m0], 0
-    while frontier and (max_depth is None or depth < max_depth):
-        depth += 1
-        new = []
-        for m in frontier:
-            for node, mutation in zip(*np.nonzero(np.asarray(action_mask(m)))):
-                child = jax.device_get(mutate(m, node, mutation))
-                key = canonical(child)
-                if key not in seen:
-                    seen.add(key)
-                    new.append(child)
-        bodies += new
-        depths += [depth] * len(new)
-        frontier = new
-    return bodies, depths
+from evojax_morph.spaces import Space, make_space
 
 
 @dataclasses.dataclass
@@ -70,7 +34,7 @@ class Landscape:
     config: dict  # how fitness was measured
 
     def index(self, m: Morphology) -> int:
-        key = canonical(m)
+        key = make_space(self.space).canonical(m)
         if key not in self.keys:
             raise KeyError(f"body not in the {self.space} landscape (deeper than it was enumerated?)")
         return self.keys.index(key)
@@ -111,7 +75,7 @@ def measure(
       max_depth: mutations from m0 to enumerate (None: all).
       batch: morphologies per compiled call.
     """
-    bodies, depths = enumerate_bodies(space, max_depth)
+    bodies, depths = space.enumerate_bodies(max_depth)
     jobs = [(k, s) for k in range(len(bodies)) for s in range(seeds)]
     fitness = np.zeros((len(bodies), seeds))
     for start in range(0, len(jobs), batch):
@@ -123,7 +87,7 @@ def measure(
             fitness[k, s] = f
     return Landscape(
         space=space.name,
-        keys=[canonical(m) for m in bodies],
+        keys=[space.canonical(m) for m in bodies],
         bodies=[m.to_dict() for m in bodies],
         depths=depths,
         mean=fitness.mean(1),

@@ -10,118 +10,24 @@ The fitness batch is split across every visible device; --distributed spans seve
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
 import json
 import sys
 from pathlib import Path
 
 import jax
-import numpy as np
 
-import evojax_morph as em
-from evojax_morph import agents, plots
-from evojax_morph.agents import dqn
-from evojax_morph.evolution import EvolutionEnv
-from evojax_morph.fitness import make_fitness_fn
-from evojax_morph.sharding import barrier, batch_mesh, init_distributed, replicated, to_host
-
-FITNESS_SCALE = {"ppo": 100.0, "tame": 1.0}  # typical fitness magnitude; rewards are divided by it
-
-
-@dataclasses.dataclass(frozen=True)
-class RunConfig:
-    """Everything that defines a run; saved as config.json, reloaded by --resume."""
-
-    space: str = "bad_walker"
-    fitness: str = "ppo"  # ppo | predefined | tame
-    classifier: str = ""  # tame: directory of the trained classifier
-    agent: str = "ddqn"
-    steps: int = 40  # environment steps; each mutates every parallel evolution once
-    seed: int = 0
-    num_envs: int = 4  # parallel evolutions, each step's fitness batch
-    horizon: int = 0  # mutations per episode; 0 picks the space's default
-    train_steps: int = 10_000  # PPO control steps per fitness evaluation
-    hidden: int = 64  # GNN width
-    explore_steps: int = 20  # environment steps over which epsilon anneals from 1 to 0.05
-    learning_starts: int = 32  # transitions stored before the Q-network learns
-    chunk: int = 5  # environment steps per jitted call
-    checkpoint_every: int = 1  # chunks between checkpoints
-
-    def resolved_horizon(self) -> int:
-        if self.horizon:
-            return self.horizon
-        return em.make_space(self.space).max_nodes - 1 if self.space == "constructor" else 4
+from evojax_morph import agents, driver
+from evojax_morph.fitnesses import list_fitnesses
+from evojax_morph.pipeline import RunConfig
+from evojax_morph.sharding import barrier, init_distributed
+from evojax_morph.spaces import list_spaces
 
 
 def gpu_defaults() -> dict:
     """On a GPU the same command evaluates a larger batch with a longer PPO budget."""
     return {"num_envs": 256, "train_steps": 50_000, "steps": 100, "explore_steps": 50, "learning_starts": 256,
             "chunk": 10, "checkpoint_every": 2}
-
-
-def build(cfg: RunConfig):
-    space = em.make_space(cfg.space)
-    fit_cfg = em.FitnessConfig(
-        kind=cfg.fitness, ppo=em.PPOConfig(train_steps=cfg.train_steps, num_envs=16, unroll_length=20),
-        classifier=cfg.classifier,
-    )
-    init_fn, fitness_fn = make_fitness_fn(space, fit_cfg)
-    horizon = cfg.resolved_horizon()
-    env = EvolutionEnv(space, fitness_fn, init_fn, horizon=horizon, num_envs=cfg.num_envs)
-    scale = FITNESS_SCALE.get(cfg.fitness, space.fitness_scale)
-    extra = {
-        "ddqn": {"epsilon_steps": cfg.explore_steps, "learning_starts": cfg.learning_starts, "batch_size": 32},
-        "a2c": {"unroll": horizon},  # one update per episode of every parallel evolution
-    }.get(cfg.agent, {})
-    init, chunk, scores_fn = agents.make_agent(cfg.agent, env, cfg.hidden, 1.0 / scale, **extra)
-    greedy_env = dataclasses.replace(env, num_envs=1)
-    return space, env, greedy_env, init, chunk, scores_fn
-
-
-def make_greedy_rollout(space, env1: EvolutionEnv, scores_fn):
-    """`rollout(params, first, key)`: from m0 (as `first`, the evaluated start of env 0), the
-    agent's greedy mutations, with each body's fitness. Compiled once, reused across calls."""
-
-    @jax.jit
-    def run(params, first, key):
-        evo = jax.tree.map(lambda x: x[:1], first)
-
-        def body(evo, key):
-            obs = env1.observe(evo)
-            action = dqn.masked_argmax(scores_fn(params, obs), obs.mask)
-            _, evo, *_ = env1.step(key, evo, action)
-            return evo, (evo.morph, evo.fitness[0], action[0])
-
-        _, (morphs, fitness, actions) = jax.lax.scan(body, evo, jax.random.split(key, env1.horizon))
-        return morphs, fitness, actions
-
-    def rollout(params, first, key):
-        morphs, fitness, actions = to_host(run(params, first, key))
-        first_morph, first_fitness = to_host((first.morph, first.fitness))
-        m0 = jax.tree.map(lambda x: x[0], first_morph)
-        seq = [m0] + [jax.tree.map(lambda x, i=i: x[i, 0], morphs) for i in range(env1.horizon)]
-        names = [f"node {a // space.num_mutations}: {space.mutation_names[a % space.num_mutations]}" for a in actions]
-        return seq, [float(first_fitness[0])] + [float(f) for f in fitness], names
-
-    return rollout
-
-
-def checkpoint_manager(out: Path):
-    import orbax.checkpoint as ocp
-
-    options = ocp.CheckpointManagerOptions(max_to_keep=2, create=True)
-    return ocp, ocp.CheckpointManager(out.resolve() / "checkpoints", options=options)
-
-
-def fresh_run_dir(cfg: RunConfig) -> Path:
-    """runs/SPACE-FITNESS-seedS, or the first of -2, -3, ... that does not exist yet."""
-    base = Path("runs") / f"{cfg.space}-{cfg.fitness}-seed{cfg.seed}"
-    out, n = base, 1
-    while out.exists():
-        n += 1
-        out = base.with_name(f"{base.name}-{n}")
-    return out
 
 
 def add_distributed_flags(parser: argparse.ArgumentParser) -> None:
@@ -150,12 +56,12 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
     gpu = jax.default_backend() == "gpu"
     defaults = dataclasses.replace(RunConfig(), **gpu_defaults()) if gpu else RunConfig()
     add = parser.add_argument
-    add("--space", default=defaults.space, help=f"morphology space: {', '.join(em.list_spaces())}")
-    add("--fitness", default=defaults.fitness, choices=["ppo", "predefined", "tame"],
+    add("--space", default=defaults.space, help=f"morphology space: {', '.join(list_spaces())}")
+    add("--fitness", default=defaults.fitness, choices=list_fitnesses(),
         help="ppo: return of a controller trained with PPO on the body (inherited from the parent); "
         "predefined: the space's hand-crafted fitness; tame: task-agnostic, with --classifier")
     add("--classifier", default="", help="tame: directory of a classifier trained by `python -m evojax_morph.tame`")
-    add("--agent", default=defaults.agent, choices=list(agents.AGENTS),
+    add("--agent", default=defaults.agent, choices=agents.list_agents(),
         help="who chooses the mutations: ddqn (Double-DQN), a2c (actor-critic), or the baselines random "
         "(random mutation walks) and evolution (a population, random mutations, the fittest survive)")
     add("--steps", type=int, default=defaults.steps, help="environment steps; each mutates every parallel evolution once")
@@ -175,8 +81,8 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
     if jax.process_count() > 1 and not args.out:
         parser.error("with several processes pass --out: every process must write the same run directory")
 
-    if args.space not in em.list_spaces():
-        parser.error(f"unknown space {args.space!r}; known spaces: {', '.join(em.list_spaces())}")
+    if args.space not in list_spaces():
+        parser.error(f"unknown space {args.space!r}; known spaces: {', '.join(list_spaces())}")
     for name in ("steps", "num_envs", "train_steps", "hidden", "chunk", "checkpoint_every", "explore_steps"):
         if getattr(args, name) < (0 if name == "train_steps" else 1):
             parser.error(f"--{name.replace('_', '-')} must be positive, got {getattr(args, name)}")
@@ -196,7 +102,7 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         explore_steps=args.explore_steps, learning_starts=args.learning_starts,
         chunk=args.chunk, checkpoint_every=args.checkpoint_every,
     )
-    out = Path(args.out) if args.out else fresh_run_dir(cfg)
+    out = Path(args.out) if args.out else driver.fresh_run_dir(cfg)
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / f".write_test{jax.process_index()}"
@@ -219,102 +125,9 @@ def main(argv: list[str] | None = None) -> int:
     cfg, out, resume = parse(argv)
     barrier("parsed")  # every process checked --out before any of them writes there
     jax.config.update("jax_default_matmul_precision", "highest")
-    lead = jax.process_index() == 0  # the process that writes files and prints
-    if lead:
-        (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
-    space, env, greedy_env, init, chunk_fn, scores_fn = build(cfg)
-    ocp, manager = checkpoint_manager(out)
-    log = print if lead else (lambda *a, **k: None)
-    log(f"evojax_morph: {cfg.agent} on {cfg.space} with {cfg.fitness} fitness, {cfg.num_envs} parallel "
-        f"evolutions x {cfg.steps} steps, horizon {env.horizon}, on {jax.device_count()} {jax.default_backend()} "
-        f"device(s) in {jax.process_count()} process(es); run in {out}")
-
-    key = jax.random.PRNGKey(cfg.seed)
-    key_init, key_greedy = jax.random.split(key)
-    rows = []
-    if resume and manager.latest_step() is not None:
-        step = manager.latest_step()
-        # Restored onto this run's devices, however many the saving run had.
-        on_mesh = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=replicated(batch_mesh()))
-        abstract = jax.tree.map(on_mesh, jax.eval_shape(init, key_init))
-        state = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract)))["state"]
-        with open(out / "metrics.csv") as f:
-            rows = [r for r in csv.DictReader(f) if int(r["step"]) <= step]
-        log(f"resumed at step {step}")
-    else:
-        log("evaluating m0 in every evolution...")
-        state = init(key_init)
-        step = 0
-
-    from tensorboardX import SummaryWriter
-    from tqdm import tqdm
-
-    writer = SummaryWriter(str(out / "tb")) if lead else None
-    bar = tqdm(total=cfg.steps, initial=min(step, cfg.steps), unit="step", dynamic_ncols=True, file=sys.stdout,
-               disable=not lead)
-    chunks_done = 0
-    while step < cfg.steps:
-        n = min(cfg.chunk, cfg.steps - step)
-        state, metrics = chunk_fn(state, n)
-        metrics = to_host(metrics)
-        for i in range(n):
-            reward = metrics["reward"][i]
-            row = {
-                "step": step + i + 1,
-                "reward_median": float(np.median(reward)),
-                "reward_q25": float(np.quantile(reward, 0.25)),
-                "reward_q75": float(np.quantile(reward, 0.75)),
-                "fitness_mean": float(np.mean(metrics["fitness"][i])),
-            }
-            row.update({k: float(v[i]) for k, v in metrics.items() if k not in ("reward", "fitness")})
-            rows.append(row)
-            for name, value in row.items():
-                if lead and name != "step":
-                    writer.add_scalar(name.replace("_", "/", 1), value, row["step"])
-        step += n
-        chunks_done += 1
-        bar.update(n)
-        bar.set_postfix(reward=f"{row['reward_median']:.3g}", best=f"{row['best_fitness']:.3g}")
-        if lead:
-            with open(out / "metrics.csv", "w", newline="") as f:
-                w = csv.DictWriter(f, fieldnames=list(rows[0]))
-                w.writeheader()
-                w.writerows(rows)
-        if chunks_done % cfg.checkpoint_every == 0 or step >= cfg.steps:
-            manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state)))
-    bar.close()
-    manager.wait_until_finished()
-
-    # RESULTS
-    best, best_fitness = to_host((state.best_morph, state.best_fitness))
-    greedy = None
-    if scores_fn is not None:  # the baselines have no policy to roll out
-        greedy = make_greedy_rollout(space, greedy_env, scores_fn)(state.params, state.first, key_greedy)
-    if not lead:
-        return 0
-    writer.close()
-    col = lambda name: np.array([r[name] for r in rows], float)  # resumed rows are strings
-    plots.plot_curve(out / "curve.png", col("step"), col("reward_median"), col("reward_q25"), col("reward_q75"))
-    (out / "best.xml").write_text(space.to_mjcf(best))
-    summary = {"best_fitness": float(best_fitness), "best_morphology": best.to_dict(), "env_steps": step,
-               "greedy_trajectory": None}
-    print(f"\nbest morphology (fitness {float(best_fitness):.4g}):")
-    print(space.format(best))
-    written = "curve.png best.xml summary.json metrics.csv tb/ checkpoints/"
-    if greedy is not None:
-        morphs, fitness, actions = greedy
-        plots.plot_trajectory(out / "trajectory.png", space, morphs, fitness, actions)
-        summary["greedy_trajectory"] = [
-            {"action": a, "fitness": f, "morphology": m.to_dict()} for a, f, m in zip(["m0"] + actions, fitness, morphs)
-        ]
-        print("\ngreedy trajectory from m0:")
-        for a, f in zip(["m0"] + actions, fitness):
-            print(f"  {a:<32} fitness {f:.4g}")
-        print(f"\nfinal greedy morphology:\n{space.format(morphs[-1])}")
-        written = "trajectory.png " + written
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
-    print(f"\nwrote {out}/: {written}")
+    driver.execute(cfg, out, resume)
     return 0
+
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -37,7 +37,7 @@ def main():
     space = em.make_space(args.space)
     cfg = tame.TameConfig()
     t = tame.Tame(space, cfg)
-    params = tame._init_params(space, cfg, jax.random.PRNGKey(0))
+    params = tame.init_classifier(space, cfg, jax.random.PRNGKey(0))
     fitness = jax.jit(jax.vmap(lambda k, m: t.fitness(params, k, m)[0]))
     walk = jax.jit(jax.vmap(space.random_morphology, (0, None)), static_argnums=1)
     physics_steps = cfg.episodes * cfg.episode_length * t.task.cfg.frame_skip

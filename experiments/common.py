@@ -18,7 +18,7 @@ import numpy as np
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from evojax_morph.run import RunConfig, build  # noqa: E402
+from evojax_morph.pipeline import RunConfig, build  # noqa: E402
 
 
 @dataclasses.dataclass(frozen=True)

@@ -25,7 +25,7 @@ import evojax_morph as em
 from evojax_morph.agents import dqn
 from evojax_morph.evolution import EvolutionEnv
 from evojax_morph.fitness import make_fitness_fn
-from evojax_morph.run import make_greedy_rollout
+from evojax_morph.pipeline import make_greedy_rollout
 from evojax_morph.spaces import bad_walker as bw
 
 

@@ -17,8 +17,6 @@ import matplotlib.pyplot as plt
 import numpy as np
 from common import add_setup_flags, band, episode_returns, run_agent, save, setup_from
 
-from evojax_morph import landscape
-
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -36,7 +34,7 @@ def main():
             summary[f"{space_name}/{agent}"] = {"final_return_median": float(np.median(ret[-5:].mean(0))),
                                                  "returns": ret.tolist()}
         if space_name == "bad_walker":  # small enough to enumerate (Constructor is not, at depth 8)
-            bodies, _ = landscape.enumerate_bodies(space)
+            bodies, _ = space.enumerate_bodies()
             fits = np.array([float(space.predefined_fitness(b)) for b in bodies])
             best = fits.max() - float(space.predefined_fitness(space.initial()))
             summary[f"{space_name}/best_possible_return"] = best

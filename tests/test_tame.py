@@ -10,7 +10,7 @@ import pytest
 
 import evojax_morph as em
 from evojax_morph import run, tame
-from evojax_morph.landscape import canonical, enumerate_bodies
+from evojax_morph.tame import __main__ as tame_cli
 
 TINY = ["--episodes", "4", "--episode-length", "20", "--population", "4", "--generations", "2", "--epochs", "2"]
 
@@ -20,7 +20,7 @@ def trained(tmp_path_factory):
     """A classifier trained by the CLI on Bad Walker with every body one mutation from m0 held
     out: the genealogy can then only hold m0 (the root's mutations are no-ops)."""
     out = tmp_path_factory.mktemp("tame") / "classifier"
-    assert tame.main(["--space", "bad_walker", "--out", str(out), "--held-out-depth", "1", "--held-out", "0.99",
+    assert tame_cli.main(["--space", "bad_walker", "--out", str(out), "--held-out-depth", "1", "--held-out", "0.99",
                       *TINY]) == 0
     return out, tame.Pretrained.load(out)
 
@@ -28,10 +28,10 @@ def trained(tmp_path_factory):
 def test_held_out_bodies_never_enter_training(trained):
     _, pre = trained
     walker = em.make_space("bad_walker")
-    bodies, depths = enumerate_bodies(walker, 1)
-    one_away = {canonical(b) for b, d in zip(bodies, depths) if d == 1}
+    bodies, depths = walker.enumerate_bodies(1)
+    one_away = {walker.canonical(b) for b, d in zip(bodies, depths) if d == 1}
     assert set(pre.held_out_bodies) == one_away and len(one_away) > 5
-    assert pre.train_bodies == [canonical(walker.initial())]  # every other mutation was refused
+    assert pre.train_bodies == [walker.canonical(walker.initial())]  # every other mutation was refused
     assert not set(pre.train_bodies) & set(pre.held_out_bodies)
     for row in pre.history:  # held-out metrics were measured, every generation
         assert -10 < row["held_out_loglik"] < 0 and 0 <= row["held_out_accuracy"] <= 1
@@ -44,7 +44,7 @@ def walker_tame():
     walker = em.make_space("bad_walker")
     cfg = tame.TameConfig(episodes=6, episode_length=20, coverage=0.7)
     t = tame.Tame(walker, cfg)
-    return walker, cfg, t, tame._init_params(walker, cfg, jax.random.PRNGKey(0)), jax.jit(t.rollout)
+    return walker, cfg, t, tame.init_classifier(walker, cfg, jax.random.PRNGKey(0)), jax.jit(t.rollout)
 
 
 def test_fitness_terms_match_numpy(walker_tame):

@@ -122,6 +122,46 @@ class Space(abc.ABC):
         m, _ = jax.lax.scan(step, self.initial(), jax.random.split(key, num_mutations))
         return m
 
+    def canonical(self, m: Morphology) -> str:
+        """A name for the shape of `m`, equal for bodies that differ only in slot numbers and
+        sibling order: its tree of (kind, site, attributes)."""
+        m = jax.device_get(m)
+
+        def name(node: int) -> str:
+            children = sorted(
+                name(j) for j in range(1, m.max_nodes) if m.active[j] and int(m.parent[j]) == node
+            )
+            attrs = ",".join(f"{a:.6g}" for a in np.asarray(m.attrs[node], float))
+            return f"{int(m.kind[node])}@{int(m.site[node])}[{attrs}](" + " ".join(children) + ")"
+
+        return name(0)
+
+    def enumerate_bodies(self, max_depth: int | None = None) -> tuple[list[Morphology], list[int]]:
+        """Every distinct body (by `canonical`) within `max_depth` mutations of m0, breadth first.
+
+        Args:
+          max_depth: mutations from m0 to follow; None: until no new body appears.
+        Returns:
+          (bodies, depths): m0 first, each body at the fewest mutations that reach it.
+        """
+        mutate, action_mask = jax.jit(self.mutate), jax.jit(self.action_mask)
+        m0 = jax.device_get(self.initial())
+        seen, bodies, depths, frontier, depth = {self.canonical(m0)}, [m0], [0], [m0], 0
+        while frontier and (max_depth is None or depth < max_depth):
+            depth += 1
+            new = []
+            for m in frontier:
+                for node, mutation in zip(*np.nonzero(np.asarray(action_mask(m)))):
+                    child = jax.device_get(mutate(m, node, mutation))
+                    key = self.canonical(child)
+                    if key not in seen:
+                        seen.add(key)
+                        new.append(child)
+            bodies += new
+            depths += [depth] * len(new)
+            frontier = new
+        return bodies, depths
+
     def format(self, m: Morphology) -> str:
         """The active tree of `m`, one limb a line."""
         return format_tree(m, self.kind_names, self.site_names, self.attr_names)

@@ -1,0 +1,20 @@
+"""Fitness kinds, registered by name; `evojax_morph.fitness` evaluates any of them.
+
+To add a kind: write a module of this package defining its `make(space, cfg) -> (init,
+evaluate)`, its settings check and its typical scale as a `Fitness`, and list it below. Its own
+settings go in `FitnessConfig` (base.py) when it has any.
+"""
+
+from evojax_morph.fitnesses import ppo, predefined, tame
+from evojax_morph.fitnesses.base import (
+    Fitness,
+    FitnessConfig,
+    FitnessResult,
+    get_fitness,
+    list_fitnesses,
+    register,
+)
+
+register(ppo.FITNESS, predefined.FITNESS, tame.FITNESS)
+
+__all__ = ["Fitness", "FitnessConfig", "FitnessResult", "get_fitness", "list_fitnesses", "register"]

@@ -1,0 +1,93 @@
+"""What every fitness kind provides, its settings, its result, and the registry of kinds."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from evojax_morph.locomotion import TaskConfig
+from evojax_morph.ppo import Params, PPOConfig
+from evojax_morph.spaces import Space
+
+
+@dataclasses.dataclass(frozen=True)
+class FitnessConfig:
+    """Which fitness, and the settings of each kind (a kind reads only its own).
+
+    kind: a registered fitness (`list_fitnesses()`): "ppo" (the return of a controller trained
+      with PPO on the body, NGE-style), "predefined" (the space's hand-crafted deterministic
+      fitness) or "tame" (task-agnostic: how well random motor primitives can be told apart
+      from where they leave the body, with a pre-trained classifier; see `evojax_morph.tame`).
+    task: the locomotion task the PPO controller learns.
+    ppo: the inner PPO's settings and budget.
+    classifier: for "tame", the directory of a classifier saved by `python -m evojax_morph.tame`.
+    """
+
+    kind: str = "ppo"
+    task: TaskConfig = TaskConfig()
+    ppo: PPOConfig = PPOConfig()
+    classifier: str = ""
+
+    def __post_init__(self):
+        get_fitness(self.kind).validate(self)
+
+
+@struct.dataclass
+class FitnessResult:
+    fitness: jax.Array  # (B,) float: the fitness of each morphology
+    fitness_std: jax.Array  # (B,) float: spread across evaluation episodes (0 if deterministic)
+    diverged: jax.Array  # (B,) bool: a simulation diverged; its fitness is finite but suspect
+    params: Params | None  # batched (B, ...) trained controllers; None for kinds without one
+    train_return: jax.Array  # (B,) mean over envs of the last finished training episode's return
+    entropy: jax.Array  # (B,) policy entropy per motor at the end of training
+    env_steps: int = struct.field(pytree_node=False)  # control steps spent per morphology
+
+
+def untrained_result(fitness: jax.Array, diverged: jax.Array, params, env_steps: int):
+    """The `FitnessResult` of a fitness that trains nothing: zero spread, return and entropy,
+    and the given controllers passed through unchanged."""
+    zeros = jnp.zeros_like(fitness)
+    return FitnessResult(fitness, zeros, diverged, params, zeros, zeros, env_steps=env_steps)
+
+
+class Fitness(NamedTuple):
+    """A kind of fitness, registered by name.
+
+    name: what `FitnessConfig.kind` and the CLI's --fitness call it.
+    validate(cfg): raises ValueError when the kind's settings in a `FitnessConfig` are wrong.
+    scale(space) -> float: the typical magnitude of its values; agents divide rewards by it.
+    make(space, cfg) -> (init, evaluate): init(key) -> the parameters of one controller, or
+      None for a kind without controllers; evaluate(keys (B,), morphs (B, ...), params (B, ...)
+      or None) -> FitnessResult of (B,) arrays: pure, batched and jittable (the callers split
+      the batch across devices and jit it).
+    """
+
+    name: str
+    validate: Callable[[FitnessConfig], None]
+    scale: Callable[[Space], float]
+    make: Callable[[Space, FitnessConfig], tuple[Callable | None, Callable]]
+
+
+_REGISTRY: dict[str, Fitness] = {}
+
+
+def register(*kinds: Fitness) -> None:
+    """Makes `kinds` known by their names (see `evojax_morph/fitnesses/__init__.py`)."""
+    _REGISTRY.update({k.name: k for k in kinds})
+
+
+def list_fitnesses() -> list[str]:
+    """Names accepted by `get_fitness` and `FitnessConfig.kind`."""
+    return sorted(_REGISTRY)
+
+
+def get_fitness(name: str) -> Fitness:
+    """The fitness kind registered as `name`."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown fitness {name!r}; choose one of {', '.join(list_fitnesses())}")
+    return _REGISTRY[name]

@@ -1,0 +1,39 @@
+"""The PPO fitness (NGE-style): the return of a controller trained with PPO on the body.
+
+Training starts from the controller it is given (a parent's: policy inheritance); the fitness is
+the mean return of the deterministic evaluation episodes after training (`evojax_morph.ppo`).
+"""
+
+from __future__ import annotations
+
+import jax
+
+from evojax_morph import ppo
+from evojax_morph.fitnesses.base import Fitness, FitnessConfig, FitnessResult
+from evojax_morph.spaces import Space
+
+
+def validate(cfg: FitnessConfig) -> None:
+    cfg.ppo.validate()
+
+
+def make(space: Space, cfg: FitnessConfig):
+    init, train = ppo.make_train(space, cfg.task, cfg.ppo)
+    env_steps = ppo.env_steps_per_morphology(cfg.task, cfg.ppo)
+
+    def evaluate(keys: jax.Array, morphs, params: ppo.Params) -> FitnessResult:
+        out = jax.vmap(train)(keys, morphs, params)
+        return FitnessResult(
+            fitness=out.fitness,
+            fitness_std=out.fitness_std,
+            diverged=out.diverged,
+            params=out.params,
+            train_return=out.train_return,
+            entropy=out.entropy,
+            env_steps=env_steps,
+        )
+
+    return init, evaluate
+
+
+FITNESS = Fitness(name="ppo", validate=validate, scale=lambda space: 100.0, make=make)
