@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import evojax_morph as em
-from evojax_morph import landscape, ppo
+from evojax_morph import ppo
 
 # The main job's inner PPO on a GPU today (run.py: 16 envs, 20-step unrolls, 50,000 steps).
 STANDARD = em.PPOConfig(train_steps=50_000, num_envs=16, unroll_length=20)
@@ -104,7 +104,7 @@ def compiled_train(space, cfg: em.PPOConfig, batch: int):
 
 def landscape_fitness(space, cfg: em.PPOConfig, seeds: int, batch: int) -> tuple[np.ndarray, float, list]:
     """(bodies, seeds) single-controller fitness of every body, its seconds (compile excluded)."""
-    bodies, _ = landscape.enumerate_bodies(space)
+    bodies, _ = space.enumerate_bodies()
     jobs = [(b, s) for b in range(len(bodies)) for s in range(seeds)]
     batch = min(batch, len(jobs))
     init, train, _ = compiled_train(space, cfg, batch)
@@ -121,7 +121,7 @@ def landscape_fitness(space, cfg: em.PPOConfig, seeds: int, batch: int) -> tuple
         seconds += time.perf_counter() - t
         for (b, s), value in zip(part[: len(jobs) - start], np.asarray(out.fitness)):
             fitness[b, s] = value
-    return fitness, seconds, [landscape.canonical(m) for m in bodies]
+    return fitness, seconds, [space.canonical(m) for m in bodies]
 
 
 def cost(space, cfg: em.PPOConfig, k: int, batch: int, repeats: int) -> dict:

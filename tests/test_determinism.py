@@ -1,0 +1,28 @@
+"""The GPU determinism switch: it must reach XLA before a backend starts, and say when it cannot."""
+
+import os
+import subprocess
+import sys
+
+PROBE = r"""
+import os, sys
+import jax
+from evojax_morph.determinism import FLAG, deterministic_gpu
+if sys.argv[1] == "late":
+    jax.devices()  # a backend is up: too late to change XLA's flags
+ok = deterministic_gpu()
+print(ok, FLAG in os.environ.get("XLA_FLAGS", ""), float(jax.numpy.ones(3).sum()))
+"""
+
+
+def probe(when: str) -> str:
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["JAX_PLATFORMS"] = "cpu"
+    proc = subprocess.run([sys.executable, "-c", PROBE, when], capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc.stdout.split()
+
+
+def test_switch_before_the_backend_starts_and_refused_after():
+    assert probe("early") == ["True", "True", "3.0"]  # set, and the CPU backend accepts the GPU flag
+    assert probe("late") == ["False", "False", "3.0"]  # nothing changed once a backend was up
