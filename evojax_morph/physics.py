@@ -239,14 +239,8 @@ def _capsule_inertia(radius: jax.Array, half: jax.Array):
 def _rot_y(angle: jax.Array) -> jax.Array:
     c, s = jnp.cos(angle), jnp.sin(angle)
     one, zero = jnp.ones_like(c), jnp.zeros_like(c)
-    return jnp.stack(
-        [
-            jnp.stack([c, zero, s], -1),
-            jnp.stack([zero, one, zero], -1),
-            jnp.stack([-s, zero, c], -1),
-        ],
-        -2,
-    )
+    rows = [jnp.stack([c, zero, s], -1), jnp.stack([zero, one, zero], -1)]
+    return jnp.stack(rows + [jnp.stack([-s, zero, c], -1)], -2)
 
 
 def _body_inertial(plan: BodyPlan, mass_g, inertia_g, centre_g, angle_g):
@@ -273,14 +267,8 @@ def _body_inertial(plan: BodyPlan, mass_g, inertia_g, centre_g, angle_g):
     ixx, iyy, izz, ixz = tensor[:, 0, 0], tensor[:, 1, 1], tensor[:, 2, 2], tensor[:, 0, 2]
     phi = 0.5 * jnp.arctan2(2 * ixz, ixx - izz)  # principal axis (cos phi, 0, sin phi)
     c, s = jnp.cos(phi), jnp.sin(phi)
-    principal = jnp.stack(
-        [
-            c * c * ixx + 2 * c * s * ixz + s * s * izz,
-            iyy,
-            s * s * ixx - 2 * c * s * ixz + c * c * izz,
-        ],
-        -1,
-    )
+    i_x = c * c * ixx + 2 * c * s * ixz + s * s * izz
+    principal = jnp.stack([i_x, iyy, s * s * ixx - 2 * c * s * ixz + c * c * izz], -1)
     zero = jnp.zeros_like(phi)
     iquat = jnp.stack([jnp.cos(phi / 2), zero, -jnp.sin(phi / 2), zero], -1)  # rotation by -phi
     return mass, com, principal, iquat
@@ -313,11 +301,8 @@ def specialise(
     g = index.geom
     size = _put(_put(template.geom_size, (g, 0), layout.geom_radius), (g, 1), half)
     rgba = _put(template.geom_rgba, (g, 3), template.geom_rgba[g, 3] * geom_on)
-    margin = _put(
-        template.geom_margin,
-        g,
-        jnp.where(layout.geom_active, template.geom_margin[g], INACTIVE_MARGIN),
-    )
+    margin = jnp.where(layout.geom_active, template.geom_margin[g], INACTIVE_MARGIN)
+    margin = _put(template.geom_margin, g, margin)
 
     # BODIES
     mass, com, principal, iquat = _body_inertial(plan, mass_g, inertia_g, centre, angle)
@@ -328,11 +313,8 @@ def specialise(
         subtree = subtree.at[plan.limb_parent[k]].add(subtree[k + 1])
 
     # LIMB JOINTS AND ACTUATORS
-    armature = _put(
-        template.dof_armature,
-        index.limb_dof,
-        jnp.where(layout.limb_active, plan.joint_armature, INACTIVE_ARMATURE),
-    )
+    armature = jnp.where(layout.limb_active, plan.joint_armature, INACTIVE_ARMATURE)
+    armature = _put(template.dof_armature, index.limb_dof, armature)
     gear = _put(template.actuator_gear, (index.actuator, 0), plan.gear * limb_on)
 
     model = template.replace(
