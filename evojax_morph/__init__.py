@@ -2,7 +2,7 @@
 
 from evojax_morph import physics  # noqa: F401  (first: it imports mjx quietly)
 from evojax_morph.fitness import evaluate, init_params
-from evojax_morph.fitnesses import FitnessConfig, FitnessResult, list_fitnesses
+from evojax_morph.fitnesses import FitnessConfig, FitnessResult, list_fitnesses, standard_ppo
 from evojax_morph.locomotion import Locomotion, TaskConfig
 from evojax_morph.morphology import Morphology, format_tree, stack, unstack
 from evojax_morph.ppo import Params, PPOConfig, make_train
@@ -28,6 +28,7 @@ __all__ = [
     "make_space",
     "make_train",
     "stack",
+    "standard_ppo",
     "unstack",
 ]
 __version__ = "0.1.0"

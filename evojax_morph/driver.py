@@ -44,12 +44,13 @@ def execute(cfg: RunConfig, out: Path, resume: bool) -> None:
     lead = jax.process_index() == 0  # the process that writes files and prints
     if lead:
         (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
-    space, env, greedy_env, init, chunk_fn, scores_fn = build(cfg)
+    p = build(cfg)
     ocp, manager = checkpoint_manager(out)
     log = print if lead else (lambda *a, **k: None)
-    log(f"evojax_morph: {cfg.agent} on {cfg.space} with {cfg.fitness} fitness, {cfg.num_envs} parallel "
-        f"evolutions x {cfg.steps} steps, horizon {env.horizon}, on {jax.device_count()} {jax.default_backend()} "
-        f"device(s) in {jax.process_count()} process(es); run in {out}")
+    log(f"evojax_morph: {cfg.agent} on {cfg.space} with {cfg.fitness} fitness, {cfg.num_envs} "
+        f"parallel evolutions x {cfg.steps} steps, horizon {p.env.horizon}, on "
+        f"{jax.device_count()} {jax.default_backend()} device(s) in {jax.process_count()} "
+        f"process(es); run in {out}")
 
     key = jax.random.PRNGKey(cfg.seed)
     key_init, key_greedy = jax.random.split(key)
@@ -57,27 +58,30 @@ def execute(cfg: RunConfig, out: Path, resume: bool) -> None:
     if resume and manager.latest_step() is not None:
         step = manager.latest_step()
         # Restored onto this run's devices, however many the saving run had.
-        on_mesh = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=replicated(batch_mesh()))
-        abstract = jax.tree.map(on_mesh, jax.eval_shape(init, key_init))
-        state = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract)))["state"]
+        on_mesh = lambda x: jax.ShapeDtypeStruct(  # noqa: E731
+            x.shape, x.dtype, sharding=replicated(batch_mesh())
+        )
+        abstract = jax.tree.map(on_mesh, jax.eval_shape(p.agent.init, key_init))
+        restore = ocp.args.Composite(state=ocp.args.StandardRestore(abstract))
+        state = manager.restore(step, args=restore)["state"]
         with open(out / "metrics.csv") as f:
             rows = [r for r in csv.DictReader(f) if int(r["step"]) <= step]
         log(f"resumed at step {step}")
     else:
         log("evaluating m0 in every evolution...")
-        state = init(key_init)
+        state = p.agent.init(key_init)
         step = 0
 
     from tensorboardX import SummaryWriter
     from tqdm import tqdm
 
     writer = SummaryWriter(str(out / "tb")) if lead else None
-    bar = tqdm(total=cfg.steps, initial=min(step, cfg.steps), unit="step", dynamic_ncols=True, file=sys.stdout,
-               disable=not lead)
+    bar = tqdm(total=cfg.steps, initial=min(step, cfg.steps), unit="step", dynamic_ncols=True,
+               file=sys.stdout, disable=not lead)
     chunks_done = 0
     while step < cfg.steps:
         n = min(cfg.chunk, cfg.steps - step)
-        state, metrics = chunk_fn(state, n)
+        state, metrics = p.agent.chunk(state, n)
         metrics = to_host(metrics)
         for i in range(n):
             reward = metrics["reward"][i]
@@ -88,7 +92,9 @@ def execute(cfg: RunConfig, out: Path, resume: bool) -> None:
                 "reward_q75": float(np.quantile(reward, 0.75)),
                 "fitness_mean": float(np.mean(metrics["fitness"][i])),
             }
-            row.update({k: float(v[i]) for k, v in metrics.items() if k not in ("reward", "fitness")})
+            row.update(
+                {k: float(v[i]) for k, v in metrics.items() if k not in ("reward", "fitness")}
+            )
             rows.append(row)
             for name, value in row.items():
                 if lead and name != "step":
@@ -110,21 +116,28 @@ def execute(cfg: RunConfig, out: Path, resume: bool) -> None:
     # RESULTS
     best, best_fitness = to_host((state.best_morph, state.best_fitness))
     greedy = None
-    if scores_fn is not None:  # the baselines have no policy to roll out
-        greedy = make_greedy_rollout(space, greedy_env, scores_fn)(state.params, state.first, key_greedy)
+    if p.agent.scores is not None:  # the baselines have no policy to roll out
+        greedy = make_greedy_rollout(p)(state.learner, state.first, key_greedy)
     if lead:
         writer.close()
-        write_results(out, space, rows, best, float(best_fitness), greedy, step)
+        write_results(out, p.space, rows, best, float(best_fitness), greedy, step)
 
 
-def write_results(out: Path, space, rows: list[dict], best, best_fitness: float, greedy, steps: int):
+def write_results(
+    out: Path, space, rows: list[dict], best, best_fitness: float, greedy, steps: int
+) -> None:
     """curve.png, best.xml, trajectory.png (if `greedy`) and summary.json, and a printed digest."""
-    col = lambda name: np.array([r[name] for r in rows], float)  # noqa: E731  resumed rows are strings
-    plots.plot_curve(out / "curve.png", col("step"), col("reward_median"), col("reward_q25"),
-                     col("reward_q75"))
+    col = lambda name: np.array([r[name] for r in rows], float)  # noqa: E731  (resumed: strings)
+    plots.plot_curve(
+        out / "curve.png", col("step"), col("reward_median"), col("reward_q25"), col("reward_q75")
+    )
     (out / "best.xml").write_text(space.to_mjcf(best))
-    summary = {"best_fitness": best_fitness, "best_morphology": best.to_dict(), "env_steps": steps,
-               "greedy_trajectory": None}
+    summary = {
+        "best_fitness": best_fitness,
+        "best_morphology": best.to_dict(),
+        "env_steps": steps,
+        "greedy_trajectory": None,
+    }
     print(f"\nbest morphology (fitness {best_fitness:.4g}):")
     print(space.format(best))
     written = "curve.png best.xml summary.json metrics.csv tb/ checkpoints/"

@@ -59,7 +59,9 @@ class EvolutionEnv:
     def reset(self, key: jax.Array) -> tuple[Observation, EvoState]:
         """Every env at m0, its controller trained from scratch and its fitness measured."""
         key_init, key_fit = jax.random.split(key)
-        morph = jax.tree.map(lambda x: jnp.broadcast_to(x, (self.num_envs,) + x.shape), self.space.initial())
+        morph = jax.tree.map(
+            lambda x: jnp.broadcast_to(x, (self.num_envs,) + x.shape), self.space.initial()
+        )
         params = jax.vmap(self.init_fn)(jax.random.split(key_init, self.num_envs))
         fitness, params = self.fitness_fn(jax.random.split(key_fit, self.num_envs), morph, params)
         state = EvoState(morph, params, fitness, jnp.zeros(self.num_envs, jnp.int32))
@@ -92,8 +94,15 @@ def track_best(evo: EvoState, best_fitness=-jnp.inf, best_morph: Morphology | No
         best_morph = jax.tree.map(lambda x: x[0], evo.morph)
     best = jnp.argmax(evo.fitness)
     improved = evo.fitness[best] > best_fitness
-    morph = jax.tree.map(lambda new, old: jnp.where(improved, new[best], old), evo.morph, best_morph)
+    morph = jax.tree.map(
+        lambda new, old: jnp.where(improved, new[best], old), evo.morph, best_morph
+    )
     return jnp.where(improved, evo.fitness[best], best_fitness), morph
+
+
+def masked_argmax(scores: jax.Array, mask: jax.Array) -> jax.Array:
+    """(...,) int: the best valid action of (..., A) scores under an (..., A) mask."""
+    return jnp.argmax(jnp.where(mask, scores, NEG), axis=-1)
 
 
 def random_valid_actions(key: jax.Array, mask: jax.Array) -> jax.Array:

@@ -2,8 +2,8 @@
 
 Bodies are those of `Space.enumerate_bodies`, told apart by `Space.canonical`, which ignores slot
 numbers and sibling order: two bodies are the same when their trees of (kind, site, attributes)
-are, so Bad Walker's two identical short feet swapped give one body. A `Landscape` stores each body's mean and std of fitness and
-answers the rank and regret of any body an agent finds.
+are, so Bad Walker's two identical short feet swapped give one body. A `Landscape` stores each
+body's mean and std of fitness and answers the rank and regret of any body an agent finds.
 """
 
 from __future__ import annotations
@@ -36,7 +36,9 @@ class Landscape:
     def index(self, m: Morphology) -> int:
         key = make_space(self.space).canonical(m)
         if key not in self.keys:
-            raise KeyError(f"body not in the {self.space} landscape (deeper than it was enumerated?)")
+            raise KeyError(
+                f"body not in the {self.space} landscape (deeper than it was enumerated?)"
+            )
         return self.keys.index(key)
 
     def rank(self, m: Morphology) -> int:
@@ -63,7 +65,12 @@ class Landscape:
 
 
 def measure(
-    space: Space, cfg: FitnessConfig, seeds: int, key: jax.Array, max_depth: int | None = None, batch: int = 1024
+    space: Space,
+    cfg: FitnessConfig,
+    seeds: int,
+    key: jax.Array,
+    max_depth: int | None = None,
+    batch: int = 1024,
 ) -> Landscape:
     """Enumerates the space and evaluates every body `seeds` times, from scratch, in batches.
 
@@ -93,6 +100,10 @@ def measure(
         mean=fitness.mean(1),
         std=fitness.std(1),
         seeds=seeds,
-        config={"kind": cfg.kind, "train_steps": cfg.ppo.train_steps, "num_envs": cfg.ppo.num_envs,
-                "max_depth": max_depth},
+        config={
+            "kind": cfg.kind,
+            "train_steps": cfg.ppo.train_steps,
+            "num_envs": cfg.ppo.num_envs,
+            "max_depth": max_depth,
+        },
     )

@@ -73,13 +73,20 @@ class Morphology:
                 raise ValueError(f"node id {i} outside capacity {n}")
             if len(node["attrs"]) != a:
                 raise ValueError(f"node {i} has {len(node['attrs'])} attrs, expected {a}")
-            active[i], parent[i], kind[i], site[i] = True, node["parent"], node["kind"], node["site"]
+            active[i], parent[i], kind[i], site[i] = (
+                True,
+                node["parent"],
+                node["kind"],
+                node["site"],
+            )
             attrs[i] = node["attrs"]
         if not active[0]:
             raise ValueError("a morphology needs its root, node 0")
         for i in range(1, n):
             if active[i] and not (0 <= parent[i] < i and active[parent[i]]):
-                raise ValueError(f"node {i} has parent {parent[i]}: parents must be active and earlier")
+                raise ValueError(
+                    f"node {i} has parent {parent[i]}: parents must be active and earlier"
+                )
         return cls(
             active=jnp.asarray(active),
             parent=jnp.asarray(parent),
@@ -91,7 +98,9 @@ class Morphology:
 
 def tree_select(cond: jax.Array, a, b):
     """Per batch element, `a` where `cond` else `b`, for pytrees with a leading (B,) axis."""
-    return jax.tree.map(lambda x, y: jnp.where(cond.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b)
+    return jax.tree.map(
+        lambda x, y: jnp.where(cond.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b
+    )
 
 
 def stack(morphs: Sequence[Morphology]) -> Morphology:
@@ -103,7 +112,7 @@ def stack(morphs: Sequence[Morphology]) -> Morphology:
 
 def unstack(morphs: Morphology) -> list[Morphology]:
     """Splits a batch made by `stack` back into single morphologies."""
-    return [jax.tree.map(lambda x: x[i], morphs) for i in range(morphs.active.shape[0])]
+    return [jax.tree.map(lambda x, i=i: x[i], morphs) for i in range(morphs.active.shape[0])]
 
 
 def format_tree(
@@ -116,7 +125,9 @@ def format_tree(
     active = np.asarray(m.active)
     parent, kind, site = (np.asarray(x) for x in (m.parent, m.kind, m.site))
     attrs = np.asarray(m.attrs)
-    children = {i: [j for j in np.flatnonzero(active) if parent[j] == i] for i in range(len(active))}
+    children = {
+        i: [j for j in np.flatnonzero(active) if parent[j] == i] for i in range(len(active))
+    }
 
     def label(i: int) -> str:
         text = f"{i}: {kind_names[kind[i]]}"

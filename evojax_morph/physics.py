@@ -231,17 +231,16 @@ def _capsule_inertia(radius: jax.Array, half: jax.Array):
     cyl = DENSITY * jnp.pi * radius**2 * h
     caps = DENSITY * 4.0 / 3.0 * jnp.pi * radius**3  # both hemispheres
     axial = cyl * radius**2 / 2 + caps * 2 * radius**2 / 5
-    perp = cyl * (3 * radius**2 + h**2) / 12 + caps * (2 * radius**2 / 5 + h**2 / 4 + 3 * h * radius / 8)
+    perp = cyl * (3 * radius**2 + h**2) / 12
+    perp = perp + caps * (2 * radius**2 / 5 + h**2 / 4 + 3 * h * radius / 8)
     return cyl + caps, jnp.stack([perp, perp, axial], -1)
 
 
 def _rot_y(angle: jax.Array) -> jax.Array:
     c, s = jnp.cos(angle), jnp.sin(angle)
     one, zero = jnp.ones_like(c), jnp.zeros_like(c)
-    return jnp.stack(
-        [jnp.stack([c, zero, s], -1), jnp.stack([zero, one, zero], -1), jnp.stack([-s, zero, c], -1)],
-        -2,
-    )
+    rows = [jnp.stack([c, zero, s], -1), jnp.stack([zero, one, zero], -1)]
+    return jnp.stack(rows + [jnp.stack([-s, zero, c], -1)], -2)
 
 
 def _body_inertial(plan: BodyPlan, mass_g, inertia_g, centre_g, angle_g):
@@ -268,10 +267,8 @@ def _body_inertial(plan: BodyPlan, mass_g, inertia_g, centre_g, angle_g):
     ixx, iyy, izz, ixz = tensor[:, 0, 0], tensor[:, 1, 1], tensor[:, 2, 2], tensor[:, 0, 2]
     phi = 0.5 * jnp.arctan2(2 * ixz, ixx - izz)  # principal axis (cos phi, 0, sin phi)
     c, s = jnp.cos(phi), jnp.sin(phi)
-    principal = jnp.stack(
-        [c * c * ixx + 2 * c * s * ixz + s * s * izz, iyy, s * s * ixx - 2 * c * s * ixz + c * c * izz],
-        -1,
-    )
+    i_x = c * c * ixx + 2 * c * s * ixz + s * s * izz
+    principal = jnp.stack([i_x, iyy, s * s * ixx - 2 * c * s * ixz + c * c * izz], -1)
     zero = jnp.zeros_like(phi)
     iquat = jnp.stack([jnp.cos(phi / 2), zero, -jnp.sin(phi / 2), zero], -1)  # rotation by -phi
     return mass, com, principal, iquat
@@ -282,13 +279,17 @@ def _put(array: jax.Array, index, value) -> jax.Array:
     return array.at[index].set(jnp.asarray(value).astype(array.dtype))
 
 
-def specialise(template: mjx.Model, plan: BodyPlan, index: TemplateIndex, layout: Layout) -> mjx.Model:
+def specialise(
+    template: mjx.Model, plan: BodyPlan, index: TemplateIndex, layout: Layout
+) -> mjx.Model:
     """The template specialised to one layout, with MuJoCo's derived constants recomputed.
 
     Pure JAX on numeric fields only: jit- and vmap-friendly, one compile for every morphology.
     """
     dtype = template.body_mass.dtype
-    layout = jax.tree.map(lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, layout)
+    layout = jax.tree.map(
+        lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, layout
+    )
     geom_on = layout.geom_active.astype(dtype)
     limb_on = layout.limb_active.astype(dtype)
 
@@ -300,7 +301,8 @@ def specialise(template: mjx.Model, plan: BodyPlan, index: TemplateIndex, layout
     g = index.geom
     size = _put(_put(template.geom_size, (g, 0), layout.geom_radius), (g, 1), half)
     rgba = _put(template.geom_rgba, (g, 3), template.geom_rgba[g, 3] * geom_on)
-    margin = _put(template.geom_margin, g, jnp.where(layout.geom_active, template.geom_margin[g], INACTIVE_MARGIN))
+    margin = jnp.where(layout.geom_active, template.geom_margin[g], INACTIVE_MARGIN)
+    margin = _put(template.geom_margin, g, margin)
 
     # BODIES
     mass, com, principal, iquat = _body_inertial(plan, mass_g, inertia_g, centre, angle)
@@ -311,9 +313,8 @@ def specialise(template: mjx.Model, plan: BodyPlan, index: TemplateIndex, layout
         subtree = subtree.at[plan.limb_parent[k]].add(subtree[k + 1])
 
     # LIMB JOINTS AND ACTUATORS
-    armature = _put(
-        template.dof_armature, index.limb_dof, jnp.where(layout.limb_active, plan.joint_armature, INACTIVE_ARMATURE)
-    )
+    armature = jnp.where(layout.limb_active, plan.joint_armature, INACTIVE_ARMATURE)
+    armature = _put(template.dof_armature, index.limb_dof, armature)
     gear = _put(template.actuator_gear, (index.actuator, 0), plan.gear * limb_on)
 
     model = template.replace(
@@ -362,7 +363,8 @@ def _set_constants(model: mjx.Model, index: TemplateIndex, limb_on: jax.Array) -
     acc0 = _put(
         model.actuator_acc0,
         index.actuator,
-        jnp.abs(model.actuator_gear[index.actuator, 0]) * jnp.linalg.norm(inv_m[:, index.limb_dof], axis=0)
+        jnp.abs(model.actuator_gear[index.actuator, 0])
+        * jnp.linalg.norm(inv_m[:, index.limb_dof], axis=0),
     )
 
     # stat.meaninertia: mean diagonal of M over the dofs the unpadded model would have.

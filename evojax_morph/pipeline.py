@@ -1,23 +1,25 @@
 """A whole run assembled from its config: space -> fitness -> evolution env -> agent.
 
-`build(cfg)` is what the `run` command, the experiments and the tests use; the greedy rollout
-reads a trained agent's choices from m0.
+`build(cfg)` is the one place that puts a run together: the `run` command, the experiments and
+the tests that need a whole pipeline all call it. The greedy rollout reads a trained agent's
+choices from m0.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 
 from evojax_morph import agents
-from evojax_morph.agents.dqn import masked_argmax
-from evojax_morph.evolution import EvolutionEnv
+from evojax_morph.agents import Agent, RunOptions
+from evojax_morph.evolution import EvolutionEnv, masked_argmax
 from evojax_morph.fitness import make_fitness_fn
-from evojax_morph.fitnesses import FitnessConfig, get_fitness
-from evojax_morph.ppo import PPOConfig
+from evojax_morph.fitnesses import FitnessConfig, get_fitness, standard_ppo
 from evojax_morph.sharding import to_host
-from evojax_morph.spaces import make_space
+from evojax_morph.spaces import Space, make_space
 
 
 @dataclasses.dataclass(frozen=True)
@@ -27,65 +29,76 @@ class RunConfig:
     space: str = "bad_walker"
     fitness: str = "ppo"  # a registered fitness kind: ppo | predefined | tame
     classifier: str = ""  # tame: directory of the trained classifier
-    agent: str = "ddqn"
+    agent: str = "ddqn"  # a registered agent: ddqn | a2c | random | evolution
     steps: int = 40  # environment steps; each mutates every parallel evolution once
     seed: int = 0
     num_envs: int = 4  # parallel evolutions, each step's fitness batch
-    horizon: int = 0  # mutations per episode; 0 picks the space's default
+    horizon: int = 0  # mutations per episode; 0: the space's default_horizon
     train_steps: int = 10_000  # PPO control steps per fitness evaluation
     hidden: int = 64  # GNN width
-    explore_steps: int = 20  # environment steps over which epsilon anneals from 1 to 0.05
-    learning_starts: int = 32  # transitions stored before the Q-network learns
+    explore_steps: int = 20  # ddqn: environment steps over which epsilon anneals from 1 to 0.05
+    learning_starts: int = 32  # ddqn: transitions stored before the Q-network learns
     chunk: int = 5  # environment steps per jitted call
     checkpoint_every: int = 1  # chunks between checkpoints
 
-    def resolved_horizon(self) -> int:
-        if self.horizon:
-            return self.horizon
-        return make_space(self.space).max_nodes - 1 if self.space == "constructor" else 4
+
+class Pipeline(NamedTuple):
+    """The parts of a run, bottom to top."""
+
+    space: Space
+    fitness: FitnessConfig
+    init_fn: Callable  # init_fn(key) -> one controller (`fitness.make_fitness_fn`)
+    fitness_fn: Callable  # fitness_fn(keys (N,), morphs (N, ...), params (N, ...))
+    env: EvolutionEnv  # num_envs parallel evolutions
+    agent: Agent  # init, chunk, scores
+    greedy_env: EvolutionEnv  # the same with one evolution, for the greedy rollout
 
 
-def build(cfg: RunConfig):
-    """(space, env, greedy_env, init, chunk, scores_fn): the run's parts (see `agents`)."""
+def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
+    """The run of `cfg`, its fitness batch and agent state on `mesh` (default: every device).
+
+    agent_cfg: the agent's own config; default: what the run's settings give it
+    (`agents.config_for_run`).
+    """
     space = make_space(cfg.space)
-    fit_cfg = FitnessConfig(
-        kind=cfg.fitness,
-        ppo=PPOConfig(train_steps=cfg.train_steps, num_envs=16, unroll_length=20),
-        classifier=cfg.classifier,
-    )
-    init_fn, fitness_fn = make_fitness_fn(space, fit_cfg)
-    horizon = cfg.resolved_horizon()
+    fit_cfg = FitnessConfig(kind=cfg.fitness, ppo=standard_ppo(cfg.train_steps),
+                            classifier=cfg.classifier)
+    init_fn, fitness_fn = make_fitness_fn(space, fit_cfg, mesh)
+    horizon = cfg.horizon or space.default_horizon
     env = EvolutionEnv(space, fitness_fn, init_fn, horizon=horizon, num_envs=cfg.num_envs)
-    scale = get_fitness(cfg.fitness).scale(space)
-    extra = {
-        "ddqn": {"epsilon_steps": cfg.explore_steps, "learning_starts": cfg.learning_starts,
-                 "batch_size": 32},
-        "a2c": {"unroll": horizon},  # one update per episode of every parallel evolution
-    }.get(cfg.agent, {})
-    init, chunk, scores_fn = agents.make_agent(cfg.agent, env, cfg.hidden, 1.0 / scale, **extra)
+    if agent_cfg is None:
+        run = RunOptions(
+            hidden=cfg.hidden,
+            reward_scale=1.0 / get_fitness(cfg.fitness).scale(space),
+            explore_steps=cfg.explore_steps,
+            learning_starts=cfg.learning_starts,
+        )
+        agent_cfg = agents.config_for_run(cfg.agent, env, run)
+    agent = agents.make_agent(cfg.agent, env, agent_cfg, mesh)
     greedy_env = dataclasses.replace(env, num_envs=1)
-    return space, env, greedy_env, init, chunk, scores_fn
+    return Pipeline(space, fit_cfg, init_fn, fitness_fn, env, agent, greedy_env)
 
 
-def make_greedy_rollout(space, env1: EvolutionEnv, scores_fn):
-    """`rollout(params, first, key)`: from m0 (as `first`, the evaluated start of env 0), the
+def make_greedy_rollout(p: Pipeline):
+    """`rollout(learner, first, key)`: from m0 (as `first`, the evaluated start of env 0), the
     agent's greedy mutations, with each body's fitness. Compiled once, reused across calls."""
+    space, env1, scores = p.space, p.greedy_env, p.agent.scores
 
     @jax.jit
-    def run(params, first, key):
+    def run(learner, first, key):
         evo = jax.tree.map(lambda x: x[:1], first)
 
         def body(evo, key):
             obs = env1.observe(evo)
-            action = masked_argmax(scores_fn(params, obs), obs.mask)
+            action = masked_argmax(scores(learner, obs), obs.mask)
             _, evo, *_ = env1.step(key, evo, action)
             return evo, (evo.morph, evo.fitness[0], action[0])
 
         _, (morphs, fitness, actions) = jax.lax.scan(body, evo, jax.random.split(key, env1.horizon))
         return morphs, fitness, actions
 
-    def rollout(params, first, key):
-        morphs, fitness, actions = to_host(run(params, first, key))
+    def rollout(learner, first, key):
+        morphs, fitness, actions = to_host(run(learner, first, key))
         first_morph, first_fitness = to_host((first.morph, first.fitness))
         m0 = jax.tree.map(lambda x: x[0], first_morph)
         seq = [m0] + [jax.tree.map(lambda x, i=i: x[i, 0], morphs) for i in range(env1.horizon)]

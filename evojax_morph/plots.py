@@ -21,7 +21,13 @@ def median_filter(x: np.ndarray, width: int) -> np.ndarray:
 def plot_curve(path, steps, median, q25, q75, width: int = 9, label: str = "reward") -> None:
     """The source's style: median-filtered per-step median with a .25-.75 quantile band."""
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    ax.fill_between(steps, median_filter(q25, width), median_filter(q75, width), alpha=0.3, label=".25-.75 quantiles")
+    ax.fill_between(
+        steps,
+        median_filter(q25, width),
+        median_filter(q75, width),
+        alpha=0.3,
+        label=".25-.75 quantiles",
+    )
     ax.plot(steps, median_filter(median, width), label=f"median {label}")
     ax.set_xlabel("environment step")
     ax.set_ylabel(label)
@@ -48,7 +54,13 @@ def draw_morphology(ax, space: Space, m: Morphology) -> None:
         a = root + origin[body] + layout.geom_from[g]
         b = root + origin[body] + layout.geom_to[g]
         width = 2 * layout.geom_radius[g] * points_per_m
-        ax.plot([a[0], b[0]], [a[2], b[2]], color=plan.geom_rgba[g][:3], lw=width, solid_capstyle="round")
+        ax.plot(
+            [a[0], b[0]],
+            [a[2], b[2]],
+            color=plan.geom_rgba[g][:3],
+            lw=width,
+            solid_capstyle="round",
+        )
     for k in np.flatnonzero(layout.limb_active):
         hip = root + origin[k + 1]
         ax.plot(hip[0], hip[2], "o", color="k", ms=3)
@@ -59,7 +71,9 @@ def draw_morphology(ax, space: Space, m: Morphology) -> None:
     ax.axis("off")
 
 
-def plot_trajectory(path, space: Space, morphs: list[Morphology], fitness: list[float], actions: list[str]) -> None:
+def plot_trajectory(
+    path, space: Space, morphs: list[Morphology], fitness: list[float], actions: list[str]
+) -> None:
     """Every morphology of a rollout with its fitness, left to right (the source's Figure 5)."""
     n = len(morphs)
     fig, axes = plt.subplots(1, n, figsize=(2.6 * n, 2.4), squeeze=False)
@@ -81,7 +95,9 @@ def plot_tame_history(path, history: list[dict]) -> None:
     gens = [h["generation"] for h in history]
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
     for ax, metric in zip(axes, ("loglik", "accuracy")):
-        ax.plot(gens, [h[f"train_{metric}"] for h in history], label="training bodies (their rollouts)")
+        ax.plot(
+            gens, [h[f"train_{metric}"] for h in history], label="training bodies (their rollouts)"
+        )
         if "held_out_" + metric in history[0]:
             ax.plot(gens, [h[f"held_out_{metric}"] for h in history], label="held-out bodies")
         ax.axhline(history[0][f"chance_{metric}"], color="0.5", ls="--", label="chance")

@@ -26,18 +26,42 @@ from evojax_morph.spaces import list_spaces
 
 def gpu_defaults() -> dict:
     """On a GPU the same command evaluates a larger batch with a longer PPO budget."""
-    return {"num_envs": 256, "train_steps": 50_000, "steps": 100, "explore_steps": 50, "learning_starts": 256,
-            "chunk": 10, "checkpoint_every": 2}
+    return {
+        "num_envs": 256,
+        "train_steps": 50_000,
+        "steps": 100,
+        "explore_steps": 50,
+        "learning_starts": 256,
+        "chunk": 10,
+        "checkpoint_every": 2,
+    }
 
 
 def add_distributed_flags(parser: argparse.ArgumentParser) -> None:
     add = parser.add_argument
-    add("--distributed", action="store_true",
-        help="call jax.distributed.initialize() first: one process per host, all with the same flags and --out; "
-        "under SLURM nothing else is needed")
-    add("--coordinator", default=None, help="with --distributed outside SLURM: host:port of process 0")
-    add("--num-processes", type=int, default=None, help="with --distributed outside SLURM: number of processes")
-    add("--process-id", type=int, default=None, help="with --distributed outside SLURM: this process's id")
+    add(
+        "--distributed",
+        action="store_true",
+        help="call jax.distributed.initialize() first: one process per host, all with the same "
+        "flags and --out; under SLURM nothing else is needed",
+    )
+    add(
+        "--coordinator",
+        default=None,
+        help="with --distributed outside SLURM: host:port of process 0",
+    )
+    add(
+        "--num-processes",
+        type=int,
+        default=None,
+        help="with --distributed outside SLURM: number of processes",
+    )
+    add(
+        "--process-id",
+        type=int,
+        default=None,
+        help="with --distributed outside SLURM: this process's id",
+    )
 
 
 def start_distributed(argv) -> None:
@@ -51,39 +75,110 @@ def start_distributed(argv) -> None:
 
 def parse(argv) -> tuple[RunConfig, Path, bool]:
     parser = argparse.ArgumentParser(
-        prog="python -m evojax_morph.run", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="python -m evojax_morph.run",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     gpu = jax.default_backend() == "gpu"
     defaults = dataclasses.replace(RunConfig(), **gpu_defaults()) if gpu else RunConfig()
     add = parser.add_argument
     add("--space", default=defaults.space, help=f"morphology space: {', '.join(list_spaces())}")
-    add("--fitness", default=defaults.fitness, choices=list_fitnesses(),
-        help="ppo: return of a controller trained with PPO on the body (inherited from the parent); "
-        "predefined: the space's hand-crafted fitness; tame: task-agnostic, with --classifier")
-    add("--classifier", default="", help="tame: directory of a classifier trained by `python -m evojax_morph.tame`")
-    add("--agent", default=defaults.agent, choices=agents.list_agents(),
-        help="who chooses the mutations: ddqn (Double-DQN), a2c (actor-critic), or the baselines random "
-        "(random mutation walks) and evolution (a population, random mutations, the fittest survive)")
-    add("--steps", type=int, default=defaults.steps, help="environment steps; each mutates every parallel evolution once")
+    add(
+        "--fitness",
+        default=defaults.fitness,
+        choices=list_fitnesses(),
+        help="ppo: return of a controller trained with PPO on the body (inherited from the "
+        "parent); predefined: the space's hand-crafted fitness; tame: task-agnostic, with "
+        "--classifier",
+    )
+    add(
+        "--classifier",
+        default="",
+        help="tame: directory of a classifier trained by `python -m evojax_morph.tame`",
+    )
+    add(
+        "--agent",
+        default=defaults.agent,
+        choices=agents.list_agents(),
+        help="who chooses the mutations: ddqn (Double-DQN), a2c (actor-critic), or the baselines "
+        "random (random mutation walks) and evolution (a population, random mutations, the "
+        "fittest survive)",
+    )
+    add(
+        "--steps",
+        type=int,
+        default=defaults.steps,
+        help="environment steps; each mutates every parallel evolution once",
+    )
     add("--seed", type=int, default=defaults.seed, help="seed of every random choice of the run")
     add("--out", default=None, help="run directory (default: a new runs/SPACE-FITNESS-seedS[-N])")
-    add("--resume", action="store_true", help="continue the run in --out from its last checkpoint, up to --steps")
-    add("--num-envs", type=int, default=defaults.num_envs, help="parallel evolutions: the fitness batch of a step")
-    add("--horizon", type=int, default=defaults.horizon, help="mutations per episode (0: 4 for bad_walker, the capacity for constructor)")
-    add("--train-steps", type=int, default=defaults.train_steps, help="PPO control steps per fitness evaluation")
+    add(
+        "--resume",
+        action="store_true",
+        help="continue the run in --out from its last checkpoint, up to --steps",
+    )
+    add(
+        "--num-envs",
+        type=int,
+        default=defaults.num_envs,
+        help="parallel evolutions: the fitness batch of a step",
+    )
+    add(
+        "--horizon",
+        type=int,
+        default=defaults.horizon,
+        help="mutations per episode (0: the space's default_horizon: 4 for bad_walker, the "
+        "capacity for constructor)",
+    )
+    add(
+        "--train-steps",
+        type=int,
+        default=defaults.train_steps,
+        help="PPO control steps per fitness evaluation",
+    )
     add("--hidden", type=int, default=defaults.hidden, help="width of the agent's GNN")
-    add("--explore-steps", type=int, default=defaults.explore_steps, help="ddqn: environment steps of epsilon annealing")
-    add("--learning-starts", type=int, default=defaults.learning_starts, help="ddqn: transitions stored before learning")
-    add("--chunk", type=int, default=defaults.chunk, help="environment steps per jitted call (progress and checkpoint granularity)")
-    add("--checkpoint-every", type=int, default=defaults.checkpoint_every, help="chunks between checkpoints")
+    add(
+        "--explore-steps",
+        type=int,
+        default=defaults.explore_steps,
+        help="ddqn: environment steps of epsilon annealing",
+    )
+    add(
+        "--learning-starts",
+        type=int,
+        default=defaults.learning_starts,
+        help="ddqn: transitions stored before learning",
+    )
+    add(
+        "--chunk",
+        type=int,
+        default=defaults.chunk,
+        help="environment steps per jitted call (progress and checkpoint granularity)",
+    )
+    add(
+        "--checkpoint-every",
+        type=int,
+        default=defaults.checkpoint_every,
+        help="chunks between checkpoints",
+    )
     add_distributed_flags(parser)
     args = parser.parse_args(argv)
     if jax.process_count() > 1 and not args.out:
-        parser.error("with several processes pass --out: every process must write the same run directory")
+        parser.error(
+            "with several processes pass --out: every process must write the same run directory"
+        )
 
     if args.space not in list_spaces():
         parser.error(f"unknown space {args.space!r}; known spaces: {', '.join(list_spaces())}")
-    for name in ("steps", "num_envs", "train_steps", "hidden", "chunk", "checkpoint_every", "explore_steps"):
+    for name in (
+        "steps",
+        "num_envs",
+        "train_steps",
+        "hidden",
+        "chunk",
+        "checkpoint_every",
+        "explore_steps",
+    ):
         if getattr(args, name) < (0 if name == "train_steps" else 1):
             parser.error(f"--{name.replace('_', '-')} must be positive, got {getattr(args, name)}")
     if args.horizon < 0:
@@ -91,17 +186,18 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
     if args.fitness == "tame" and not args.resume:
         meta = Path(args.classifier) / "tame.json"
         if not args.classifier or not meta.exists():
-            parser.error("--fitness tame needs --classifier DIR, a classifier trained by "
-                         f"`python -m evojax_morph.tame --space {args.space} --out DIR`")
+            parser.error(
+                "--fitness tame needs --classifier DIR, a classifier trained by "
+                f"`python -m evojax_morph.tame --space {args.space} --out DIR`"
+            )
         if json.loads(meta.read_text())["space"] != args.space:
-            parser.error(f"the classifier in {args.classifier!r} was trained on another space than {args.space}")
-    cfg = RunConfig(
-        space=args.space, fitness=args.fitness, agent=args.agent, steps=args.steps, seed=args.seed,
-        classifier=str(Path(args.classifier).resolve()) if args.classifier else "",
-        num_envs=args.num_envs, horizon=args.horizon, train_steps=args.train_steps, hidden=args.hidden,
-        explore_steps=args.explore_steps, learning_starts=args.learning_starts,
-        chunk=args.chunk, checkpoint_every=args.checkpoint_every,
-    )
+            parser.error(
+                f"the classifier in {args.classifier!r} was trained on another space than "
+                f"{args.space}"
+            )
+    cfg = RunConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(RunConfig)})
+    classifier = str(Path(args.classifier).resolve()) if args.classifier else ""
+    cfg = dataclasses.replace(cfg, classifier=classifier)
     out = Path(args.out) if args.out else driver.fresh_run_dir(cfg)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -116,7 +212,9 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
             parser.error(f"--resume: no run in {str(out)!r} (no config.json)")
         cfg = dataclasses.replace(RunConfig(**json.loads(saved.read_text())), steps=args.steps)
     elif (out / "checkpoints").exists():
-        parser.error(f"{str(out)!r} already holds a run: pass --resume to continue it, or another --out")
+        parser.error(
+            f"{str(out)!r} already holds a run: pass --resume to continue it, or another --out"
+        )
     return cfg, out, args.resume
 
 

@@ -61,7 +61,9 @@ def shard_batch(fn: Callable, mesh: Mesh | None = None) -> Callable:
     if mesh.size == 1:
         return fn
     split = NamedSharding(mesh, PartitionSpec(AXIS))
-    constrain = lambda tree: jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, split), tree)
+    constrain = lambda tree: jax.tree.map(
+        lambda x: jax.lax.with_sharding_constraint(x, split), tree
+    )
 
     def wrapped(*args):
         batch = jax.tree.leaves(args)[0].shape[0]
@@ -79,7 +81,9 @@ def jit_replicated(init: Callable, chunk: Callable, mesh: Mesh | None = None):
     on `mesh` (default: all devices): the agent is small, the fitness inside splits its batch
     across the devices, and a state whose placement never changes compiles once."""
     everywhere = replicated(batch_mesh() if mesh is None else mesh)
-    return jax.jit(init, out_shardings=everywhere), jax.jit(chunk, static_argnums=1, out_shardings=everywhere)
+    return jax.jit(init, out_shardings=everywhere), jax.jit(
+        chunk, static_argnums=1, out_shardings=everywhere
+    )
 
 
 def to_host(tree):
@@ -99,7 +103,11 @@ def barrier(name: str) -> None:
         multihost_utils.sync_global_devices(name)
 
 
-def init_distributed(coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None):
+def init_distributed(
+    coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None
+):
     """`jax.distributed.initialize`: with no arguments JAX detects SLURM (or another cluster);
     otherwise pass the coordinator's "host:port", the number of processes and this one's id."""
-    jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes, process_id=process_id)
+    jax.distributed.initialize(
+        coordinator_address=coordinator, num_processes=num_processes, process_id=process_id
+    )

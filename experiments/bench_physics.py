@@ -8,8 +8,8 @@ For each space, at B morphologies x E envs (B*E worlds), this times:
 Each figure steps every world `--steps` times inside one jitted `lax.scan`, after a warm-up
 call that compiles it, and takes the median of `--repeats` timed calls.
 
-  python experiments/bench_physics.py                       # CPU-sized defaults
-  python experiments/bench_physics.py --batch 1024 --envs 64  # the GPU target
+  python -m experiments.bench_physics                       # CPU-sized defaults
+  python -m experiments.bench_physics --batch 1024 --envs 64  # the GPU target
 """
 
 from __future__ import annotations
@@ -97,7 +97,9 @@ def bench_space(name: str, batch: int, envs: int, steps: int, repeats: int, seed
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--spaces", nargs="+", default=em.list_spaces())
     parser.add_argument("--batch", type=int, default=8, help="B, morphologies")
     parser.add_argument("--envs", type=int, default=8, help="E, worlds per morphology")
@@ -107,10 +109,16 @@ def main():
     args = parser.parse_args()
     jax.config.update("jax_default_matmul_precision", "highest")
 
-    rows = [bench_space(s, args.batch, args.envs, args.steps, args.repeats, args.seed) for s in args.spaces]
+    rows = [
+        bench_space(s, args.batch, args.envs, args.steps, args.repeats, args.seed)
+        for s in args.spaces
+    ]
     for row in rows:
         print(json.dumps(row))
-    print(f"\n{'space':<12} {'B x E':>12} {'unpadded/s':>12} {'padded/s':>12} {'batched/s':>12} {'padding':>8}")
+    print(
+        f"\n{'space':<12} {'B x E':>12} {'unpadded/s':>12} {'padded/s':>12} {'batched/s':>12} "
+        f"{'padding':>8}"
+    )
     for r in rows:
         print(
             f"{r['space']:<12} {r['batch']:>5} x {r['envs']:<4} {r['unpadded_sps']:>12.4g} "

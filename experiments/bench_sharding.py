@@ -9,8 +9,9 @@ update the replicated agent) at --envs-per-device x n parallel evolutions. Speed
 on n devices over evals/s on one device at its full batch. Timings exclude compilation.
 
   XLA_FLAGS=--xla_force_host_platform_device_count=2 \
-    python experiments/bench_sharding.py --per-device 2 --envs-per-device 2 --dqn-train-steps 320 --repeats 1
-  python experiments/bench_sharding.py --per-device 1024 --envs-per-device 256     # GPUs
+    python -m experiments.bench_sharding --per-device 2 --envs-per-device 2 \
+      --dqn-train-steps 320 --repeats 1
+  python -m experiments.bench_sharding --per-device 1024 --envs-per-device 256     # GPUs
 """
 
 from __future__ import annotations
@@ -19,13 +20,12 @@ import argparse
 import json
 
 import jax
-from bench_fitness import STANDARD, median_time
 
 import evojax_morph as em
 from evojax_morph.agents import dqn
-from evojax_morph.evolution import EvolutionEnv
-from evojax_morph.fitness import make_fitness_fn
+from evojax_morph.pipeline import RunConfig, build
 from evojax_morph.sharding import batch_mesh
+from experiments.bench_fitness import STANDARD, median_time
 
 
 def bench_evaluate(space, devices, batch: int, repeats: int) -> float:
@@ -37,10 +37,10 @@ def bench_evaluate(space, devices, batch: int, repeats: int) -> float:
 
 
 def bench_dqn_step(space, devices, num_envs: int, train_steps: int, repeats: int) -> float:
-    fit_cfg = em.FitnessConfig(ppo=em.PPOConfig(train_steps=train_steps, num_envs=16, unroll_length=20))
-    init_fn, fitness_fn = make_fitness_fn(space, fit_cfg, mesh=batch_mesh(devices))
-    env = EvolutionEnv(space, fitness_fn, init_fn, horizon=4, num_envs=num_envs)
-    init, chunk, _ = dqn.make_agent(env, dqn.DQNConfig(learning_starts=0), mesh=batch_mesh(devices))
+    run = RunConfig(
+        space=space.name, agent="ddqn", num_envs=num_envs, horizon=4, train_steps=train_steps
+    )
+    init, chunk, _ = build(run, batch_mesh(devices), dqn.DQNConfig(learning_starts=0)).agent
     state = jax.jit(init)(jax.random.PRNGKey(0))
     holder = [state]
 
@@ -52,9 +52,18 @@ def bench_dqn_step(space, devices, num_envs: int, train_steps: int, repeats: int
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--per-device", type=int, default=16, help="bodies per device for em.evaluate")
-    parser.add_argument("--envs-per-device", type=int, default=0, help="DQN parallel evolutions per device (0: skip)")
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--per-device", type=int, default=16, help="bodies per device for em.evaluate"
+    )
+    parser.add_argument(
+        "--envs-per-device",
+        type=int,
+        default=0,
+        help="DQN parallel evolutions per device (0: skip)",
+    )
     parser.add_argument("--dqn-train-steps", type=int, default=5_000)
     parser.add_argument("--repeats", type=int, default=2)
     args = parser.parse_args()
@@ -73,14 +82,24 @@ def main():
                 rate = bench_evaluate(space, devices[:n], batch, args.repeats)
             else:
                 rate = bench_dqn_step(space, devices[:n], batch, args.dqn_train_steps, args.repeats)
-            rows.append({"what": what, "device": devices[0].device_kind, "devices": n, "batch": batch,
-                         "evals_per_s": rate})
+            rows.append(
+                {
+                    "what": what,
+                    "device": devices[0].device_kind,
+                    "devices": n,
+                    "batch": batch,
+                    "evals_per_s": rate,
+                }
+            )
             print(json.dumps(rows[-1]), flush=True)
 
     print(f"\n{'what':>9} {'devices':>7} {'batch':>6} {'evals/s':>9} {'speed-up':>9}")
     for r in rows:
         base = max(x["evals_per_s"] for x in rows if x["what"] == r["what"] and x["devices"] == 1)
-        print(f"{r['what']:>9} {r['devices']:>7} {r['batch']:>6} {r['evals_per_s']:>9.4g} {r['evals_per_s'] / base:>9.2f}")
+        print(
+            f"{r['what']:>9} {r['devices']:>7} {r['batch']:>6} {r['evals_per_s']:>9.4g} "
+            f"{r['evals_per_s'] / base:>9.2f}"
+        )
 
 
 if __name__ == "__main__":

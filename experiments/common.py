@@ -36,7 +36,11 @@ class Setup:
 def add_setup_flags(parser, seeds: int = 3, **defaults):
     d = dataclasses.replace(Setup(), **defaults)
     for f in dataclasses.fields(Setup):
-        parser.add_argument("--" + f.name.replace("_", "-"), type=type(getattr(d, f.name)), default=getattr(d, f.name))
+        parser.add_argument(
+            "--" + f.name.replace("_", "-"),
+            type=type(getattr(d, f.name)),
+            default=getattr(d, f.name),
+        )
     parser.add_argument("--seeds", type=int, default=seeds)
     parser.add_argument("--out", default=None)
 
@@ -48,13 +52,22 @@ def setup_from(args) -> Setup:
 def run_agent(agent: str, setup: Setup, seeds: int) -> dict:
     """`seeds` independent runs of `agent`, built as the run command builds them; returns
     per-step arrays of shape (steps, seeds, ...)."""
-    cfg = RunConfig(space=setup.space, fitness=setup.fitness, agent=agent, num_envs=setup.num_envs,
-                    horizon=setup.horizon, train_steps=setup.train_steps, hidden=setup.hidden,
-                    explore_steps=max(setup.steps // 2, 1), learning_starts=4 * setup.num_envs)
-    space, env, _, init, chunk, _ = build(cfg)
+    cfg = RunConfig(
+        space=setup.space,
+        fitness=setup.fitness,
+        agent=agent,
+        num_envs=setup.num_envs,
+        horizon=setup.horizon,
+        train_steps=setup.train_steps,
+        hidden=setup.hidden,
+        explore_steps=max(setup.steps // 2, 1),
+        learning_starts=4 * setup.num_envs,
+    )
+    p = build(cfg)
+    chunk = p.agent.chunk
     keys = jax.random.split(jax.random.PRNGKey(0), seeds)
     start = time.perf_counter()
-    states = jax.block_until_ready(jax.jit(jax.vmap(init))(keys))
+    states = jax.block_until_ready(jax.jit(jax.vmap(p.agent.init))(keys))
     init_s = time.perf_counter() - start
     step_fns = {}
     metrics, walls, done = [], [], 0
@@ -78,8 +91,8 @@ def run_agent(agent: str, setup: Setup, seeds: int) -> dict:
         "evals_per_step": setup.num_envs,  # per seed
         "best_bodies": [jax.tree.map(lambda x, i=i: x[i], best) for i in range(seeds)],
         "best_fitness": np.asarray(jax.device_get(states.best_fitness)),
-        "space": space,
-        "horizon": env.horizon,
+        "space": p.space,
+        "horizon": p.env.horizon,
     }
 
 

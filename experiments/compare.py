@@ -11,8 +11,9 @@ regret: the in-run fitness is one noisy evaluation with an inherited controller.
 The summary JSON is written after every method; run again with the same flags and --out to
 resume: methods already in it (same settings) are kept, not rerun.
 
-  python experiments/compare.py --landscape docs/landscapes/landscape_bad_walker.json --out docs/figures   # GPU
-  python experiments/compare.py --fitness predefined --steps 8        # CPU smoke
+  python -m experiments.compare --landscape docs/landscapes/landscape_bad_walker.json \
+    --out docs/figures                                                # GPU
+  python -m experiments.compare --fitness predefined --steps 8        # CPU smoke
 """
 
 from __future__ import annotations
@@ -24,9 +25,9 @@ from pathlib import Path
 import jax
 import matplotlib.pyplot as plt
 import numpy as np
-from common import add_setup_flags, band, run_agent, save, setup_from
 
 from evojax_morph import landscape
+from experiments.common import add_setup_flags, band, run_agent, save, setup_from
 
 METHODS = ("ddqn", "a2c", "evolution", "random")
 
@@ -34,10 +35,14 @@ METHODS = ("ddqn", "a2c", "evolution", "random")
 def run_method(method, setup, seeds, ls) -> dict:
     res = run_agent(method, setup, seeds)
     best = res["metrics"]["best_fitness"]  # (steps, seeds)
-    row = {"curve": best.tolist(), "step_seconds": res["step_seconds"].tolist(),
-           "best_fitness": best[-1].tolist(), "median_best_fitness": float(np.median(best[-1])),
-           "seconds_per_step": float(np.median(res["step_seconds"])),
-           "best_bodies": [res["space"].format(b) for b in res["best_bodies"]]}
+    row = {
+        "curve": best.tolist(),
+        "step_seconds": res["step_seconds"].tolist(),
+        "best_fitness": best[-1].tolist(),
+        "median_best_fitness": float(np.median(best[-1])),
+        "seconds_per_step": float(np.median(res["step_seconds"])),
+        "best_bodies": [res["space"].format(b) for b in res["best_bodies"]],
+    }
     if ls is not None:
         row["landscape_mean"] = [float(ls.mean[ls.index(b)]) for b in res["best_bodies"]]
         row["rank"] = [ls.rank(b) for b in res["best_bodies"]]
@@ -46,10 +51,18 @@ def run_method(method, setup, seeds, ls) -> dict:
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     add_setup_flags(parser, space="bad_walker", num_envs=16, steps=12, chunk=4, seeds=5)
-    parser.add_argument("--landscape", default=None, help="a landscape_SPACE.json to rank the best bodies in")
-    parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated subset of " + ",".join(METHODS))
+    parser.add_argument(
+        "--landscape", default=None, help="a landscape_SPACE.json to rank the best bodies in"
+    )
+    parser.add_argument(
+        "--methods",
+        default=",".join(METHODS),
+        help="comma-separated subset of " + ",".join(METHODS),
+    )
     args = parser.parse_args()
     jax.config.update("jax_default_matmul_precision", "highest")
     setup = setup_from(args)
@@ -69,8 +82,15 @@ def main():
         if method in summary:
             continue
         summary[method] = run_method(method, setup, args.seeds, ls)
-        print(method, {k: v for k, v in summary[method].items() if k not in ("best_bodies", "curve", "step_seconds")},
-              flush=True)
+        print(
+            method,
+            {
+                k: v
+                for k, v in summary[method].items()
+                if k not in ("best_bodies", "curve", "step_seconds")
+            },
+            flush=True,
+        )
         out.mkdir(parents=True, exist_ok=True)
         previous.write_text(json.dumps(summary, indent=1))
 
@@ -85,12 +105,22 @@ def main():
     score = "landscape_mean" if ls is not None else "best_fitness"
     for agent in ("ddqn", "a2c", "random"):
         if agent in summary and "evolution" in summary:
-            a, e = np.asarray(summary[agent][score])[:, None], np.asarray(summary["evolution"][score])[None, :]
+            a, e = (
+                np.asarray(summary[agent][score])[:, None],
+                np.asarray(summary["evolution"][score])[None, :],
+            )
             summary[f"{agent}_beats_evolution"] = float(np.mean((a > e) + 0.5 * (a == e)))
             print(f"P({agent} > evolution) = {summary[f'{agent}_beats_evolution']:.2f}")
-    ax_evals.set(title=f"{setup.space}, {setup.fitness} fitness", xlabel="fitness evaluations per run",
-                 ylabel="best fitness found (in run)")
-    ax_wall.set(title="against wall-clock (all seeds at once)", xlabel="seconds", ylabel="best fitness found")
+    ax_evals.set(
+        title=f"{setup.space}, {setup.fitness} fitness",
+        xlabel="fitness evaluations per run",
+        ylabel="best fitness found (in run)",
+    )
+    ax_wall.set(
+        title="against wall-clock (all seeds at once)",
+        xlabel="seconds",
+        ylabel="best fitness found",
+    )
     ax_evals.legend()
     save(fig, out, name, summary)
 

@@ -3,8 +3,8 @@
 Episode return (f_k - f_0, mean over the parallel evolutions) against episodes and the best
 fitness found, median over seeds with a .25-.75 band.
 
-  python experiments/fig6_ddqn_hidden.py --out docs/figures                 # GPU
-  python experiments/fig6_ddqn_hidden.py --fitness predefined --steps 8     # CPU smoke
+  python -m experiments.fig6_ddqn_hidden --out docs/figures                 # GPU
+  python -m experiments.fig6_ddqn_hidden --fitness predefined --steps 8     # CPU smoke
 """
 
 from __future__ import annotations
@@ -15,11 +15,14 @@ import dataclasses
 import jax
 import matplotlib.pyplot as plt
 import numpy as np
-from common import add_setup_flags, band, episode_returns, run_agent, save, setup_from
+
+from experiments.common import add_setup_flags, band, episode_returns, run_agent, save, setup_from
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     add_setup_flags(parser, space="bad_walker", num_envs=16, steps=16, chunk=4, seeds=3)
     args = parser.parse_args()
     jax.config.update("jax_default_matmul_precision", "highest")
@@ -32,9 +35,14 @@ def main():
         band(ax_ret, np.arange(1, len(ret) + 1), ret, f"hidden {hidden}")
         best = res["metrics"]["best_fitness"]  # (steps, seeds)
         band(ax_best, np.arange(1, len(best) + 1), best, f"hidden {hidden}")
-        summary[f"hidden_{hidden}"] = {"returns": ret.tolist(), "best_fitness": best.tolist(),
-                                       "step_seconds": float(np.median(res["step_seconds"]))}
-    ax_ret.set(title=f"DDQN, Bad Walker, {args.fitness} fitness", xlabel="episode", ylabel="episode return")
+        summary[f"hidden_{hidden}"] = {
+            "returns": ret.tolist(),
+            "best_fitness": best.tolist(),
+            "step_seconds": float(np.median(res["step_seconds"])),
+        }
+    ax_ret.set(
+        title=f"DDQN, Bad Walker, {args.fitness} fitness", xlabel="episode", ylabel="episode return"
+    )
     ax_best.set(title="best fitness found", xlabel="environment step", ylabel="fitness")
     ax_ret.legend()
     save(fig, args.out or "runs/figures", "fig6_ddqn_hidden", summary)

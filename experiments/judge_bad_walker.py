@@ -3,7 +3,8 @@
 A body is given as the sites of its three feet, long,back,front, each a site name of the space
 (back_end, back_inner, front_inner, front_end, middle) or "removed". m* is always added.
 
-  python experiments/judge_bad_walker.py front_inner,back_inner,front_inner middle,front_inner,front_inner \
+  python -m experiments.judge_bad_walker front_inner,back_inner,front_inner \
+      middle,front_inner,front_inner \
       --train-steps 50000 --seeds 8
 """
 
@@ -30,7 +31,9 @@ def body(space, spec: str):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("bodies", nargs="+")
     parser.add_argument("--train-steps", type=int, default=50_000)
     parser.add_argument("--seeds", type=int, default=8)
@@ -38,15 +41,23 @@ def main():
     jax.config.update("jax_default_matmul_precision", "highest")
     space = em.make_space("bad_walker")
     specs = list(dict.fromkeys(args.bodies + ["removed,back_end,front_end"]))  # m* last
-    cfg = em.FitnessConfig(ppo=em.PPOConfig(train_steps=args.train_steps, num_envs=16, unroll_length=20))
+    cfg = em.FitnessConfig(ppo=em.standard_ppo(args.train_steps))
     batch = em.stack([body(space, s) for s in specs for _ in range(args.seeds)])
     result = em.evaluate(space, batch, jax.random.PRNGKey(7), cfg)
     fitness = np.asarray(result.fitness).reshape(len(specs), args.seeds)
     star = fitness[-1].mean()
     for spec, f in zip(specs, fitness):
-        print(json.dumps({"body (long,back,front)": spec, "mean": round(float(f.mean()), 1),
-                          "std": round(float(f.std()), 1), "median": round(float(np.median(f)), 1),
-                          "at_least_m_star": bool(f.mean() >= star)}))
+        print(
+            json.dumps(
+                {
+                    "body (long,back,front)": spec,
+                    "mean": round(float(f.mean()), 1),
+                    "std": round(float(f.std()), 1),
+                    "median": round(float(np.median(f)), 1),
+                    "at_least_m_star": bool(f.mean() >= star),
+                }
+            )
+        )
 
 
 if __name__ == "__main__":

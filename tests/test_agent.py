@@ -1,5 +1,6 @@
 """The evolution MDP and the Double-DQN agent, with the predefined fitness (fast)."""
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -7,12 +8,14 @@ import pytest
 from test_spaces import reachable
 
 import evojax_morph as em
+from evojax_morph import agents
 from evojax_morph.agents import dqn
-from evojax_morph.evolution import EvolutionEnv
-from evojax_morph.fitness import make_fitness_fn
+from evojax_morph.evolution import EvolutionEnv, masked_argmax
+from evojax_morph.pipeline import RunConfig, build
 
 HORIZON, NUM_ENVS, CHUNK, CHUNKS = 4, 16, 50, 4
 CFG = dqn.DQNConfig(hidden=32, epsilon_steps=100, learning_starts=64)
+RUN_OPTIONS = agents.RunOptions(hidden=16, reward_scale=0.01, explore_steps=2, learning_starts=4)
 
 
 def test_double_q_target_by_hand():
@@ -38,7 +41,9 @@ def test_gnn_ignores_inactive_slots():
     net = TreeGNN(hidden=20, layers=2, out_size=space.num_mutations, head=(64, 32))
     params = net.init(jax.random.PRNGKey(0), m, feats)
     q, pooled = net.apply(params, m, feats)
-    junk = m.replace(parent=m.parent.at[5].set(1), kind=m.kind.at[5].set(2))  # slot 5 stays inactive
+    junk = m.replace(
+        parent=m.parent.at[5].set(1), kind=m.kind.at[5].set(2)
+    )  # slot 5 stays inactive
     noisy = feats.at[5:].set(jax.random.normal(jax.random.PRNGKey(1), feats[5:].shape))
     q2, pooled2 = net.apply(params, junk, noisy)
     assert q.shape == (space.max_nodes, space.num_mutations) and pooled.shape == (20,)
@@ -47,10 +52,11 @@ def test_gnn_ignores_inactive_slots():
 
 
 def make(space_name="bad_walker", num_envs=NUM_ENVS):
-    space = em.make_space(space_name)
-    init_fn, fitness_fn = make_fitness_fn(space, em.FitnessConfig(kind="predefined"))
-    env = EvolutionEnv(space, fitness_fn, init_fn, horizon=HORIZON, num_envs=num_envs)
-    return space, env, dqn.make_agent(env, CFG)
+    run = RunConfig(
+        space=space_name, fitness="predefined", agent="ddqn", num_envs=num_envs, horizon=HORIZON
+    )
+    p = build(run, agent_cfg=CFG)
+    return p.space, p.env, p.agent
 
 
 def test_env_reward_is_fitness_change_and_episodes_restart():
@@ -58,8 +64,12 @@ def test_env_reward_is_fitness_change_and_episodes_restart():
     obs, state = env.reset(jax.random.PRNGKey(0))
     assert obs.mask.shape == (2, space.num_actions)
     remove_long = 1 * space.num_mutations + 4  # node 1, mutation "remove"
-    obs, new, reward, terminated, _, _ = env.step(jax.random.PRNGKey(1), state, jnp.array([remove_long, 0]))
-    expected = space.predefined_fitness(space.mutate(space.initial(), 1, 4)) - space.predefined_fitness(space.initial())
+    obs, new, reward, terminated, _, _ = env.step(
+        jax.random.PRNGKey(1), state, jnp.array([remove_long, 0])
+    )
+    expected = space.predefined_fitness(
+        space.mutate(space.initial(), 1, 4)
+    ) - space.predefined_fitness(space.initial())
     np.testing.assert_allclose(reward, [expected, 0.0], atol=1e-6)
     assert not obs.mask[0, remove_long] and not terminated.any()
     for _ in range(HORIZON - 1):
@@ -72,7 +82,7 @@ def test_env_reward_is_fitness_change_and_episodes_restart():
 def test_masked_actions_are_never_chosen():
     _, env, (init, chunk, _) = make("constructor")
     state, _ = chunk(jax.jit(init)(jax.random.PRNGKey(0)), 40)  # epsilon anneals from 1 to 0.6
-    buf = jax.device_get(state.buffer)
+    buf = jax.device_get(state.learner.buffer)
     chosen_valid = buf.obs.mask[np.arange(buf.size), buf.action[: buf.size]]
     assert buf.size == 40 * NUM_ENVS and chosen_valid.all()
 
@@ -84,10 +94,10 @@ def greedy_success(seeds) -> np.ndarray:
     optimum = float(jnp.max(jax.vmap(space.predefined_fitness)(em.stack(reachable(space)))))
     greedy_env = EvolutionEnv(space, env.fitness_fn, env.init_fn, horizon=HORIZON, num_envs=1)
 
-    def greedy_final(params):
+    def greedy_final(learner):
         obs, evo = greedy_env.reset(jax.random.PRNGKey(0))
         for k in range(HORIZON):
-            action = dqn.masked_argmax(q_fn(params, obs), obs.mask)
+            action = masked_argmax(q_fn(learner, obs), obs.mask)
             obs, evo, *_ = greedy_env.step(jax.random.PRNGKey(k), evo, action)
         return evo.fitness[0]
 
@@ -96,7 +106,7 @@ def greedy_success(seeds) -> np.ndarray:
     for _ in range(CHUNKS):
         states, metrics = run_chunk(states)
     assert np.isfinite(metrics["loss"]).all()
-    return np.abs(np.asarray(jax.jit(jax.vmap(greedy_final))(states.params)) - optimum) < 1e-6
+    return np.abs(np.asarray(jax.jit(jax.vmap(greedy_final))(states.learner)) - optimum) < 1e-6
 
 
 @pytest.mark.learning
@@ -106,3 +116,50 @@ def test_greedy_policy_finds_the_predefined_optimum():
     # Measured on 2 CPU cores (jax 0.10.2): 12 of these 12 seeds; 39 of 42 seeds (0-41), so 12 draws
     # of a 0.93 success rate fall below 9 about once in 100 (Binomial).
     assert found.mean() >= 0.75, found
+
+
+# --- every registered agent ----------------------------------------------------------------
+
+
+class RootOnlyEnv(EvolutionEnv):
+    """Only the root's mutations are valid, and a reward is NaN where an agent chose another:
+    an agent that ignores the mask is caught at the first step."""
+
+    def observe(self, state):
+        obs = super().observe(state)
+        return obs.replace(
+            mask=obs.mask & (jnp.arange(obs.mask.shape[1]) < self.space.num_mutations)
+        )
+
+    def step(self, key, state, action):
+        valid = self.observe(state).mask[jnp.arange(self.num_envs), action]
+        obs, new, reward, terminated, truncated, info = super().step(key, state, action)
+        return obs, new, jnp.where(valid, reward, jnp.nan), terminated, truncated, info
+
+
+@pytest.mark.parametrize("name", agents.list_agents())
+def test_every_agent_shapes_masks_and_one_trace(name):
+    """Shapes, valid actions only, and one trace of the step however the bodies change.
+
+    Constructor's root has 6 free slots: two chunks of 2 steps never fill it."""
+    n, steps = 4, 2
+    p = build(
+        RunConfig(space="constructor", fitness="predefined", agent="random", num_envs=n, horizon=3)
+    )
+    env = RootOnlyEnv(p.space, p.fitness_fn, p.init_fn, p.env.horizon, n)
+    policy = agents.make_policy(name, env, agents.config_for_run(name, env, RUN_OPTIONS))
+    chex.clear_trace_counter()  # the baselines share their functions' code
+    once = policy._replace(
+        act=chex.assert_max_traces(policy.act, n=1), learn=chex.assert_max_traces(policy.learn, n=1)
+    )
+    agent = agents.from_policy(env, once)
+    state = agent.init(jax.random.PRNGKey(0))
+    for _ in range(2):  # the second chunk: other bodies, the same program
+        state, metrics = agent.chunk(state, steps)
+        assert metrics["reward"].shape == metrics["fitness"].shape == (steps, n)
+        assert metrics["best_fitness"].shape == (steps,)
+        assert np.isfinite(metrics["reward"]).all(), f"{name} chose a masked action"
+    assert int(state.step) == 2 * steps and state.evo.fitness.shape == (n,)
+    assert (state.evo.morph.parent[:, 1:] <= 0).all()  # every limb hangs from the root
+    if agent.scores is not None:
+        assert agent.scores(state.learner, env.observe(state.evo)).shape == (n, p.space.num_actions)

@@ -8,8 +8,20 @@ import pytest
 
 from evojax_morph import run
 
-TINY = ["--space", "bad_walker", "--fitness", "predefined", "--num-envs", "4", "--chunk", "3", "--explore-steps", "4",
-        "--learning-starts", "8"]
+TINY = [
+    "--space",
+    "bad_walker",
+    "--fitness",
+    "predefined",
+    "--num-envs",
+    "4",
+    "--chunk",
+    "3",
+    "--explore-steps",
+    "4",
+    "--learning-starts",
+    "8",
+]
 
 
 @pytest.mark.parametrize(
@@ -41,7 +53,9 @@ def test_unwritable_out_and_missing_resume(capsys, tmp_path):
 def test_resume_matches_an_uninterrupted_run(tmp_path):
     straight, split = tmp_path / "straight", tmp_path / "split"
     assert run.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(straight)]) == 0
-    assert run.main(TINY + ["--steps", "3", "--seed", "3", "--out", str(split)]) == 0  # "interrupted"
+    assert (
+        run.main(TINY + ["--steps", "3", "--seed", "3", "--out", str(split)]) == 0
+    )  # "interrupted"
     with pytest.raises(SystemExit):  # a second start in the same directory must say --resume
         run.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(split)])
     assert run.main(TINY + ["--steps", "9", "--out", str(split), "--resume"]) == 0
@@ -51,6 +65,8 @@ def test_resume_matches_an_uninterrupted_run(tmp_path):
     import orbax.checkpoint as ocp
 
     args = ocp.args.Composite(state=ocp.args.StandardRestore())
-    restore = lambda d: ocp.CheckpointManager(d.resolve() / "checkpoints").restore(9, args=args)["state"]
+    restore = lambda d: ocp.CheckpointManager(d.resolve() / "checkpoints").restore(9, args=args)[
+        "state"
+    ]
     for x, y in zip(jax.tree.leaves(restore(straight)), jax.tree.leaves(restore(split))):
         np.testing.assert_array_equal(x, y)

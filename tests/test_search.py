@@ -13,18 +13,17 @@ import pytest
 from test_spaces import reachable
 
 import evojax_morph as em
-from evojax_morph import agents, landscape
+from evojax_morph import landscape
 from evojax_morph.agents import a2c
-from evojax_morph.evolution import EvolutionEnv
-from evojax_morph.fitness import make_fitness_fn
+from evojax_morph.pipeline import RunConfig, build
 
-EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+ROOT = Path(__file__).resolve().parents[1]
 
 
-def make_env(space_name, num_envs, horizon):
-    space = em.make_space(space_name)
-    init_fn, fitness_fn = make_fitness_fn(space, em.FitnessConfig(kind="predefined"))
-    return space, EvolutionEnv(space, fitness_fn, init_fn, horizon=horizon, num_envs=num_envs)
+def make(space_name, agent, num_envs, horizon, **run):
+    """The run's pipeline with the predefined fitness."""
+    return build(RunConfig(space=space_name, fitness="predefined", agent=agent, num_envs=num_envs,
+                           horizon=horizon, **run))
 
 
 def test_masked_entropy_by_hand():
@@ -37,9 +36,9 @@ def test_masked_entropy_by_hand():
 def a2c_learning(seeds) -> tuple[np.ndarray, np.ndarray]:
     """Per seed (one vmapped call): the rise of the mean episode return (f_8 - f_0) from the
     first 5 episodes to the last 5 of 25, and the fall of the policy's entropy from the first 8
-    steps to the last 8, for the actor-critic on Constructor with the predefined fitness."""
-    space, env = make_env("constructor", 16, 8)
-    init, chunk, _ = agents.make_agent("a2c", env, hidden=32, reward_scale=1.0 / space.fitness_scale, unroll=8)
+    steps to the last 8, for the actor-critic on Constructor with the predefined fitness
+    (rewards / fitness_scale, one update per episode)."""
+    init, chunk, _ = make("constructor", "a2c", 16, 8, hidden=32).agent
     keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))
     _, metrics = jax.jit(jax.vmap(lambda s: chunk(s, 200)))(jax.jit(jax.vmap(init))(keys))
     assert np.isfinite(metrics["loss"]).all()
@@ -54,8 +53,8 @@ def test_actor_critic_learns_constructor():
     """Episode returns rise from random play towards the space's best, and the entropy falls."""
     rise, fall = a2c_learning(range(12))
     # Measured on 2 CPU cores (jax 0.10.2) over seeds 0-41: rise median 462 (range 335-610),
-    # entropy fall median 1.11 (range 0.43-1.93). A 12-seed median
-    # below 300 or 0.5 would take most seeds at the tail of those ranges.
+    # entropy fall median 1.11 (range 0.43-1.93). A 12-seed median below 300 or 0.5 would take
+    # most seeds at the tail of those ranges.
     assert np.median(rise) > 300, rise
     assert np.median(fall) > 0.5, fall
 
@@ -63,8 +62,7 @@ def test_actor_critic_learns_constructor():
 def evolution_search(seeds):
     """Per seed (one vmapped call): best fitness per step (S, 12) and the final population's
     fitness (S, 8) of (mu + lambda) evolution on Bad Walker with the predefined fitness."""
-    _, env = make_env("bad_walker", 8, 4)
-    init, chunk, scores = agents.make_agent("evolution", env)
+    init, chunk, scores = make("bad_walker", "evolution", 8, 4).agent
     assert scores is None
     keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))
     states, metrics = jax.jit(jax.vmap(lambda s: chunk(s, 12)))(jax.jit(jax.vmap(init))(keys))
@@ -87,12 +85,14 @@ def test_evolution_is_elitist_and_finds_the_optimum():
 
 
 def test_random_walks_restart():
-    space, env = make_env("bad_walker", 8, 4)
-    init, chunk, _ = agents.make_agent("random", env)
+    space = em.make_space("bad_walker")
+    init, chunk, _ = make("bad_walker", "random", 8, 4).agent
     state, metrics = chunk(init(jax.random.PRNGKey(1)), 8)  # two episodes: restarts at m0
     assert np.isfinite(np.asarray(metrics["fitness"])).all() and (state.evo.steps == 0).all()
     np.testing.assert_array_equal(state.evo.morph.site, state.first.morph.site)  # back at m0
-    np.testing.assert_allclose(state.evo.fitness, jax.vmap(space.predefined_fitness)(state.evo.morph))
+    np.testing.assert_allclose(
+        state.evo.fitness, jax.vmap(space.predefined_fitness)(state.evo.morph)
+    )
 
 
 def test_landscape_enumerates_ranks_and_round_trips(tmp_path):
@@ -120,34 +120,94 @@ def test_landscape_enumerates_ranks_and_round_trips(tmp_path):
 @pytest.mark.parametrize(
     "script, args, output",
     [
-        ("fig4_predefined.py", ["--steps", "8", "--chunk", "8", "--num-envs", "4", "--seeds", "2"], "fig4_predefined"),
-        ("fig6_ddqn_hidden.py", ["--fitness", "predefined", "--steps", "8", "--chunk", "8", "--num-envs", "4",
-                                 "--seeds", "2"], "fig6_ddqn_hidden"),
-        ("fig8_a2c_constructor.py", ["--fitness", "predefined", "--steps", "16", "--chunk", "16", "--num-envs",
-                                     "4", "--seeds", "2"], "fig8_a2c_constructor"),
-        ("compare.py", ["--fitness", "predefined", "--steps", "4", "--chunk", "4", "--num-envs", "4", "--seeds", "2",
-                        "--landscape", "LANDSCAPE"], "compare_bad_walker"),
-        ("landscapes.py", ["--spaces", "bad_walker", "--train-steps", "160", "--seeds", "1", "--batch", "96"],
-         "landscape_bad_walker"),
+        (
+            "fig4_predefined",
+            ["--steps", "8", "--chunk", "8", "--num-envs", "4", "--seeds", "2"],
+            "fig4_predefined",
+        ),
+        (
+            "fig6_ddqn_hidden",
+            [
+                "--fitness",
+                "predefined",
+                "--steps",
+                "8",
+                "--chunk",
+                "8",
+                "--num-envs",
+                "4",
+                "--seeds",
+                "2",
+            ],
+            "fig6_ddqn_hidden",
+        ),
+        (
+            "fig8_a2c_constructor",
+            [
+                "--fitness",
+                "predefined",
+                "--steps",
+                "16",
+                "--chunk",
+                "16",
+                "--num-envs",
+                "4",
+                "--seeds",
+                "2",
+            ],
+            "fig8_a2c_constructor",
+        ),
+        (
+            "compare",
+            [
+                "--fitness",
+                "predefined",
+                "--steps",
+                "4",
+                "--chunk",
+                "4",
+                "--num-envs",
+                "4",
+                "--seeds",
+                "2",
+                "--landscape",
+                "LANDSCAPE",
+            ],
+            "compare_bad_walker",
+        ),
+        (
+            "landscapes",
+            ["--spaces", "bad_walker", "--train-steps", "160", "--seeds", "1", "--batch", "96"],
+            "landscape_bad_walker",
+        ),
     ],
 )
 def test_experiment_scripts_run_at_a_tiny_budget(script, args, output, tmp_path, monkeypatch):
+    """`python -m experiments.SCRIPT ...` from the project root, in this process."""
     if "LANDSCAPE" in args:
-        ls = landscape.measure(em.make_space("bad_walker"), em.FitnessConfig(kind="predefined"), 1,
-                               jax.random.PRNGKey(0))
+        ls = landscape.measure(
+            em.make_space("bad_walker"),
+            em.FitnessConfig(kind="predefined"),
+            1,
+            jax.random.PRNGKey(0),
+        )
         ls.save(tmp_path / "ls.json")
         args = [str(tmp_path / "ls.json") if a == "LANDSCAPE" else a for a in args]
-    monkeypatch.syspath_prepend(str(EXPERIMENTS))
+    monkeypatch.syspath_prepend(str(ROOT))
     monkeypatch.setattr(sys, "argv", [script, *args, "--out", str(tmp_path)])
-    runpy.run_path(str(EXPERIMENTS / script), run_name="__main__")
+    runpy.run_module(f"experiments.{script}", run_name="__main__")
     assert (tmp_path / f"{output}.png").stat().st_size > 0
     summary = json.loads((tmp_path / f"{output}.json").read_text())
     assert summary
-    if script == "compare.py":
-        assert all(1 <= r <= 90 for m in ("ddqn", "a2c", "evolution", "random") for r in summary[m]["rank"])
+    if script == "compare":
+        assert all(
+            1 <= r <= 90 for m in ("ddqn", "a2c", "evolution", "random") for r in summary[m]["rank"]
+        )
         # Same flags again: every method is resumed from the JSON, none rerun, the figure redrawn.
         (tmp_path / f"{output}.png").unlink()
-        monkeypatch.setattr("common.run_agent", lambda *a: pytest.fail("a finished method was rerun"))
-        runpy.run_path(str(EXPERIMENTS / script), run_name="__main__")
+        monkeypatch.setattr(
+            "experiments.common.run_agent", lambda *a: pytest.fail("a finished method was rerun")
+        )
+        runpy.run_module(f"experiments.{script}", run_name="__main__")
         assert (tmp_path / f"{output}.png").stat().st_size > 0
         assert json.loads((tmp_path / f"{output}.json").read_text())["ddqn"] == summary["ddqn"]

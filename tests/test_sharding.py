@@ -25,8 +25,8 @@ assert jax.device_count() == 4
 # float64 so that only rounding (reduction order differs between the programs) separates them
 jax.config.update("jax_enable_x64", True)
 space = em.make_space("bad_walker")
-cfg = em.FitnessConfig(ppo=em.PPOConfig(train_steps=320, num_envs=8, num_minibatches=2, update_epochs=2,
-                                        eval_episodes=1))
+cfg = em.FitnessConfig(ppo=em.PPOConfig(train_steps=320, num_envs=8, num_minibatches=2,
+                                        update_epochs=2, eval_episodes=1))
 keys = jax.random.split(jax.random.PRNGKey(0), 6)  # 6 bodies on 4 devices: padded to 8
 morphs = jax.vmap(space.random_morphology, (0, None))(keys, 3)
 four = em.evaluate(space, morphs, keys, cfg)
@@ -36,19 +36,38 @@ jax.config.update("jax_enable_x64", False)
 
 # a run saved on 4 devices, resumed by the caller on 1
 assert run.main(sys.argv[1:]) == 0
-print("RESULT", json.dumps({"four": np.asarray(four.fitness).tolist(), "one": np.asarray(one.fitness).tolist(),
-                            "devices": len(devices)}))
+print("RESULT", json.dumps({"four": np.asarray(four.fitness).tolist(),
+                            "one": np.asarray(one.fitness).tolist(), "devices": len(devices)}))
 """
 
 
 def test_four_devices_give_one_devices_fitness_and_checkpoints_move(tmp_path):
     out = tmp_path / "run"
-    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=4")
+    env = dict(
+        os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=4"
+    )
     env.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.expanduser("~/.cache/evojax_morph/jax"))
-    cli = ["--space", "bad_walker", "--steps", "2", "--num-envs", "6", "--train-steps", "320", "--chunk", "1",
-           "--out", str(out)]
-    proc = subprocess.run([sys.executable, "-c", FOUR_DEVICES, *cli], capture_output=True, text=True, env=env,
-                          timeout=900)
+    cli = [
+        "--space",
+        "bad_walker",
+        "--steps",
+        "2",
+        "--num-envs",
+        "6",
+        "--train-steps",
+        "320",
+        "--chunk",
+        "1",
+        "--out",
+        str(out),
+    ]
+    proc = subprocess.run(
+        [sys.executable, "-c", FOUR_DEVICES, *cli],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=900,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "on 4 cpu device(s)" in proc.stdout
     got = json.loads(proc.stdout.split("RESULT ")[1])
@@ -57,7 +76,14 @@ def test_four_devices_give_one_devices_fitness_and_checkpoints_move(tmp_path):
     assert np.ptp(got["one"]) > 1.0  # different bodies, different fitness: a mix-up would show
 
     # The 4-device run's outputs, then its checkpoint resumed here, on one device.
-    for name in ("config.json", "metrics.csv", "curve.png", "trajectory.png", "best.xml", "summary.json"):
+    for name in (
+        "config.json",
+        "metrics.csv",
+        "curve.png",
+        "trajectory.png",
+        "best.xml",
+        "summary.json",
+    ):
         assert (out / name).stat().st_size > 0, name
     assert list((out / "tb").iterdir())  # TensorBoard events
     import mujoco

@@ -12,7 +12,18 @@ import evojax_morph as em
 from evojax_morph import run, tame
 from evojax_morph.tame import __main__ as tame_cli
 
-TINY = ["--episodes", "4", "--episode-length", "20", "--population", "4", "--generations", "2", "--epochs", "2"]
+TINY = [
+    "--episodes",
+    "4",
+    "--episode-length",
+    "20",
+    "--population",
+    "4",
+    "--generations",
+    "2",
+    "--epochs",
+    "2",
+]
 
 
 @pytest.fixture(scope="module")
@@ -20,8 +31,22 @@ def trained(tmp_path_factory):
     """A classifier trained by the CLI on Bad Walker with every body one mutation from m0 held
     out: the genealogy can then only hold m0 (the root's mutations are no-ops)."""
     out = tmp_path_factory.mktemp("tame") / "classifier"
-    assert tame_cli.main(["--space", "bad_walker", "--out", str(out), "--held-out-depth", "1", "--held-out", "0.99",
-                      *TINY]) == 0
+    assert (
+        tame_cli.main(
+            [
+                "--space",
+                "bad_walker",
+                "--out",
+                str(out),
+                "--held-out-depth",
+                "1",
+                "--held-out",
+                "0.99",
+                *TINY,
+            ]
+        )
+        == 0
+    )
     return out, tame.Pretrained.load(out)
 
 
@@ -31,7 +56,9 @@ def test_held_out_bodies_never_enter_training(trained):
     bodies, depths = walker.enumerate_bodies(1)
     one_away = {walker.canonical(b) for b, d in zip(bodies, depths) if d == 1}
     assert set(pre.held_out_bodies) == one_away and len(one_away) > 5
-    assert pre.train_bodies == [walker.canonical(walker.initial())]  # every other mutation was refused
+    assert pre.train_bodies == [
+        walker.canonical(walker.initial())
+    ]  # every other mutation was refused
     assert not set(pre.train_bodies) & set(pre.held_out_bodies)
     for row in pre.history:  # held-out metrics were measured, every generation
         assert -10 < row["held_out_loglik"] < 0 and 0 <= row["held_out_accuracy"] <= 1
@@ -44,7 +71,13 @@ def walker_tame():
     walker = em.make_space("bad_walker")
     cfg = tame.TameConfig(episodes=6, episode_length=20, coverage=0.7)
     t = tame.Tame(walker, cfg)
-    return walker, cfg, t, tame.init_classifier(walker, cfg, jax.random.PRNGKey(0)), jax.jit(t.rollout)
+    return (
+        walker,
+        cfg,
+        t,
+        tame.init_classifier(walker, cfg, jax.random.PRNGKey(0)),
+        jax.jit(t.rollout),
+    )
 
 
 def test_fitness_terms_match_numpy(walker_tame):
@@ -53,7 +86,12 @@ def test_fitness_terms_match_numpy(walker_tame):
     walker, cfg, t, params, rollout = walker_tame
     m = walker.optimum()
     r = jax.device_get(rollout(jax.random.PRNGKey(3), m))
-    assert not r.diverged.any() and r.labelled.tolist() == [False, False, True, True]  # m* has no long foot
+    assert not r.diverged.any() and r.labelled.tolist() == [
+        False,
+        False,
+        True,
+        True,
+    ]  # m* has no long foot
     f = tame.fitness_from(cfg, tame.log_likelihood(t.classifier, params, m, r)[0], r)
     k = cfg.num_primitives
     control = 0.0
@@ -63,7 +101,9 @@ def test_fitness_terms_match_numpy(walker_tame):
             logq = logits[j] - np.log(np.exp(logits[j]).sum())
             control += (math.log(k) + logq[r.labels[e, j]]) / cfg.episodes
     moved = np.asarray(r.states[:, 0, :2], np.float64)
-    coverage = 0.5 * np.log(np.linalg.det(np.eye(2) + np.cov(moved.T, bias=True) / cfg.state_noise**2))
+    coverage = 0.5 * np.log(
+        np.linalg.det(np.eye(2) + np.cov(moved.T, bias=True) / cfg.state_noise**2)
+    )
     assert coverage > 0.1  # the feet move the trunk
     np.testing.assert_allclose(f, control + cfg.coverage * coverage, rtol=1e-4)
 
@@ -93,12 +133,18 @@ def test_fitness_is_deterministic_and_batch_independent(trained):
     other = em.evaluate(walker, morphs, jax.random.split(jax.random.PRNGKey(1), 3), cfg)
     assert not np.allclose(a.fitness, other.fitness)
     for i in range(3):
-        one = em.evaluate(walker, jax.tree.map(lambda x: x[i : i + 1], morphs), keys[i : i + 1], cfg)  # noqa: B023
+        pick = jax.tree.map(lambda x, i=i: x[i : i + 1], morphs)
+        one = em.evaluate(walker, pick, keys[i : i + 1], cfg)
         np.testing.assert_allclose(one.fitness[0], a.fitness[i], rtol=1e-4, atol=1e-4)
     with pytest.raises(ValueError, match="classifier"):
         em.FitnessConfig(kind="tame")
     with pytest.raises(ValueError, match="trained on bad_walker"):
-        em.evaluate(em.make_space("constructor"), em.stack([em.make_space("constructor").initial()]), keys[0], cfg)
+        em.evaluate(
+            em.make_space("constructor"),
+            em.stack([em.make_space("constructor").initial()]),
+            keys[0],
+            cfg,
+        )
 
 
 def test_cli_runs_with_the_tame_fitness(trained, tmp_path, capsys):
@@ -107,9 +153,39 @@ def test_cli_runs_with_the_tame_fitness(trained, tmp_path, capsys):
         run.main(["--fitness", "tame", "--out", str(tmp_path / "none")])
     assert "needs --classifier" in capsys.readouterr().err
     with pytest.raises(SystemExit):
-        run.main(["--space", "constructor", "--fitness", "tame", "--classifier", str(out), "--out", str(tmp_path / "x")])
+        run.main(
+            [
+                "--space",
+                "constructor",
+                "--fitness",
+                "tame",
+                "--classifier",
+                str(out),
+                "--out",
+                str(tmp_path / "x"),
+            ]
+        )
     assert "another space" in capsys.readouterr().err
-    assert run.main(["--fitness", "tame", "--classifier", str(out), "--agent", "random", "--steps", "2",
-                     "--num-envs", "2", "--chunk", "2", "--out", str(tmp_path / "r")]) == 0
+    assert (
+        run.main(
+            [
+                "--fitness",
+                "tame",
+                "--classifier",
+                str(out),
+                "--agent",
+                "random",
+                "--steps",
+                "2",
+                "--num-envs",
+                "2",
+                "--chunk",
+                "2",
+                "--out",
+                str(tmp_path / "r"),
+            ]
+        )
+        == 0
+    )
     summary = json.loads((tmp_path / "r" / "summary.json").read_text())
     assert math.isfinite(summary["best_fitness"])

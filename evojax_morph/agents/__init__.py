@@ -1,44 +1,40 @@
-"""Agents that choose mutations, registered by name, all with one interface.
+"""Agents that choose mutations, registered by name, all with one skeleton (`agents.base`).
 
-`make_agent(name, env, ...)` returns `(init(key) -> state, chunk(state, n) -> (state, metrics),
-scores_fn)`: chunk runs n environment steps (each evaluates env.num_envs children) in one jitted
+`make_agent(name, env)` returns an `Agent(init, chunk, scores)`: init(key) -> `AgentState`;
+chunk(state, n) runs n environment steps (each evaluates env.num_envs children) in one jitted
 scan and stacks per-step metrics ("reward" and "fitness" of shape (n, N), "best_fitness" (n,),
-and the agent's own, e.g. "epsilon", "entropy", "loss"); scores_fn(params, obs) -> (N, A)
-scores whose masked argmax is the greedy action, or None for the baselines, which learn nothing.
+and the agent's own, e.g. "epsilon", "entropy", "loss"); scores(learner, obs) -> (N, A) scores
+whose masked argmax is the greedy action, or None for the baselines, which learn nothing.
 
-To add an agent: a module of this package with its config dataclass and its `make_agent(env,
-cfg, mesh)`, and a line in `_REGISTRY`.
+To add an agent: a module of this package with its config dataclass (defaults, and `for_run`:
+what a run's `RunOptions` make of it) and `make_policy(env, cfg) -> Policy` (how it acts and
+learns), and a line in `_REGISTRY`.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from collections.abc import Callable
+from typing import Any, NamedTuple
 
 from evojax_morph.agents import a2c, baselines, dqn
+from evojax_morph.agents.base import Agent, AgentState, Policy, RunOptions, Transition, from_policy
+from evojax_morph.evolution import EvolutionEnv
 
 
-def _learner(config: type, make: Callable):
-    """A learning agent's factory: its config built from the shared options and `overrides`."""
+class AgentKind(NamedTuple):
+    """A registered agent: its config dataclass (None: nothing to set) and its policy."""
 
-    def factory(env, hidden: int, reward_scale: float, mesh, **overrides):
-        return make(env, config(hidden=hidden, reward_scale=reward_scale, **overrides), mesh)
-
-    return factory
+    config: type | None
+    make_policy: Callable  # make_policy(env, cfg) -> Policy
 
 
-def _baseline(kind: str):
-    def factory(env, hidden: int, reward_scale: float, mesh):
-        del hidden, reward_scale  # nothing learns
-        return baselines.make_agent(env, kind, mesh)
-
-    return factory
-
-
-_REGISTRY: dict[str, Callable] = {
-    "ddqn": _learner(dqn.DQNConfig, dqn.make_agent),
-    "a2c": _learner(a2c.A2CConfig, a2c.make_agent),
-    "random": _baseline("random"),
-    "evolution": _baseline("evolution"),
+_REGISTRY: dict[str, AgentKind] = {
+    "ddqn": AgentKind(dqn.DQNConfig, dqn.make_policy),
+    "a2c": AgentKind(a2c.A2CConfig, a2c.make_policy),
+    "random": AgentKind(None, baselines.make_policy),
+    "evolution": AgentKind(None, functools.partial(baselines.make_policy, selection=True)),
 }
 
 
@@ -47,8 +43,46 @@ def list_agents() -> list[str]:
     return list(_REGISTRY)
 
 
-def make_agent(name: str, env, hidden: int = 64, reward_scale: float = 1.0, mesh=None, **overrides):
-    """The agent `name` on `env`; `overrides` go to its config (DQNConfig or A2CConfig)."""
+def _kind(name: str) -> AgentKind:
     if name not in _REGISTRY:
         raise ValueError(f"unknown agent {name!r}; choose one of {', '.join(_REGISTRY)}")
-    return _REGISTRY[name](env, hidden, reward_scale, mesh, **overrides)
+    return _REGISTRY[name]
+
+
+def config_for_run(name: str, env: EvolutionEnv, run: RunOptions) -> Any:
+    """The config of agent `name` that a run's settings give it (None for the baselines)."""
+    config = _kind(name).config
+    return None if config is None else config.for_run(env, run)
+
+
+def make_policy(name: str, env: EvolutionEnv, cfg: Any = None, **overrides) -> Policy:
+    """How agent `name` acts and learns on `env` (see `Policy`).
+
+    cfg: its config (default: the config's defaults); `overrides` replace fields of it.
+    """
+    kind = _kind(name)
+    if kind.config is not None:
+        cfg = dataclasses.replace(kind.config() if cfg is None else cfg, **overrides)
+    elif cfg is not None or overrides:
+        raise ValueError(f"the {name} agent has no settings")
+    return kind.make_policy(env, cfg)
+
+
+def make_agent(name: str, env: EvolutionEnv, cfg: Any = None, mesh=None, **overrides) -> Agent:
+    """The agent `name` on `env`, jitted, its state replicated on `mesh` (default: every
+    device); `cfg` and `overrides` as in `make_policy`."""
+    return from_policy(env, make_policy(name, env, cfg, **overrides), mesh)
+
+
+__all__ = [
+    "Agent",
+    "AgentState",
+    "Policy",
+    "RunOptions",
+    "Transition",
+    "config_for_run",
+    "from_policy",
+    "list_agents",
+    "make_agent",
+    "make_policy",
+]

@@ -3,8 +3,8 @@
 Instead of asynchronous workers, N evolutions unroll in parallel under vmap; every `unroll`
 environment steps one synchronous update uses GAE advantages over the stored unroll. One jraph
 GNN reads the tree: a per-node policy head gives logits[node, mutation] (a softmax over the
-valid actions only) and a pooled head the state value. Acting, mutating, evaluating the batch
-of children, storing and learning run in one jitted `lax.scan` per chunk of steps.
+valid actions only) and a pooled head the state value. The shared loop (`agents.base`) acts,
+mutates, evaluates the children and calls `learn` in one jitted `lax.scan` per chunk of steps.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ import optax
 from brax.training.agents.ppo import losses as ppo_losses
 from flax import struct
 
-from evojax_morph.evolution import NEG, EvolutionEnv, EvoState, Observation, track_best
+from evojax_morph.agents.base import Policy, RunOptions, Transition
+from evojax_morph.evolution import NEG, EvolutionEnv, Observation
 from evojax_morph.gnn import TreeGNN, node_features
-from evojax_morph.sharding import jit_replicated
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,6 +37,11 @@ class A2CConfig:
     value_cost: float = 0.5
     reward_scale: float = 1.0  # rewards are multiplied by this before learning
     max_grad_norm: float = 1.0
+
+    @classmethod
+    def for_run(cls, env: EvolutionEnv, run: RunOptions) -> A2CConfig:
+        """A run's settings: one update per episode of every parallel evolution."""
+        return cls(hidden=run.hidden, reward_scale=run.reward_scale, unroll=env.horizon)
 
 
 class ActorCritic(nn.Module):
@@ -64,17 +69,11 @@ class Unroll:
 
 
 @struct.dataclass
-class A2CState:
+class A2CLearner:
     params: dict
     opt_state: optax.OptState
     unroll: Unroll
-    evo: EvoState  # the parallel evolutions
-    first: EvoState  # m0 as reset evaluated it, where ended episodes restart
-    key: jax.Array
-    step: jax.Array  # () int32: env steps done
     loss: jax.Array  # (): the last update's loss
-    best_fitness: jax.Array  # (): best fitness seen in any env
-    best_morph: object  # the morphology that had it
 
 
 def masked_entropy(logits: jax.Array, mask: jax.Array) -> jax.Array:
@@ -83,15 +82,14 @@ def masked_entropy(logits: jax.Array, mask: jax.Array) -> jax.Array:
     return -jnp.sum(jnp.where(mask, jnp.exp(logp) * logp, 0.0), -1)
 
 
-def make_agent(env: EvolutionEnv, cfg: A2CConfig, mesh=None):
-    """Returns (init(key) -> A2CState, chunk(state, num_steps) -> (state, metrics), logits_fn).
-
-    init and chunk are jitted, their outputs replicated on `mesh` (see `dqn.make_agent`);
-    logits_fn(params, obs) -> (N, num_actions): the greedy action is their masked argmax."""
+def make_policy(env: EvolutionEnv, cfg: A2CConfig) -> Policy:
+    """The actor-critic's acting and learning; scores are the policy logits."""
     space = env.space
     net = ActorCritic(cfg.hidden, cfg.layers, space.num_mutations)
     num_kinds, num_sites = len(space.kind_names), len(space.site_names)
-    optimizer = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate))
+    optimizer = optax.chain(
+        optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate)
+    )
 
     def apply(params, obs: Observation):
         """(N, A) logits and (N,) values of a batch of observations."""
@@ -101,11 +99,10 @@ def make_agent(env: EvolutionEnv, cfg: A2CConfig, mesh=None):
 
         return jax.vmap(one)(obs.morph, obs.progress)
 
-    def init(key: jax.Array) -> A2CState:
-        key_net, key_env, key = jax.random.split(key, 3)
-        obs, evo = env.reset(key_env)
+    def init(keys: jax.Array, obs: Observation) -> A2CLearner:
         single = jax.tree.map(lambda x: x[0], obs)
-        params = net.init(key_net, single.morph, node_features(single.morph, single.progress, num_kinds, num_sites))
+        feats = node_features(single.morph, single.progress, num_kinds, num_sites)
+        params = net.init(keys[0], single.morph, feats)
         t, n = cfg.unroll, env.num_envs
         unroll = Unroll(
             obs=jax.tree.map(lambda x: jnp.zeros((t,) + x.shape, x.dtype), obs),
@@ -113,19 +110,13 @@ def make_agent(env: EvolutionEnv, cfg: A2CConfig, mesh=None):
             reward=jnp.zeros((t, n)),
             done=jnp.zeros((t, n), bool),
         )
-        best_fitness, best_morph = track_best(evo)
-        return A2CState(
-            params=params,
-            opt_state=optimizer.init(params),
-            unroll=unroll,
-            evo=evo,
-            first=evo,
-            key=key,
-            step=jnp.zeros((), jnp.int32),
-            loss=jnp.zeros(()),
-            best_fitness=best_fitness,
-            best_morph=best_morph,
-        )
+        return A2CLearner(params, optimizer.init(params), unroll, jnp.zeros(()))
+
+    def act(learner: A2CLearner, keys: jax.Array, obs: Observation, step):
+        """A sample of the softmax over valid actions."""
+        logits, _ = apply(learner.params, obs)
+        action = jax.random.categorical(keys[0], jnp.where(obs.mask, logits, NEG))
+        return action.astype(jnp.int32), {"entropy": jnp.mean(masked_entropy(logits, obs.mask))}
 
     def loss_fn(params, unroll: Unroll, last_obs: Observation):
         flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), unroll.obs)
@@ -150,56 +141,28 @@ def make_agent(env: EvolutionEnv, cfg: A2CConfig, mesh=None):
         entropy = jnp.mean(masked_entropy(logits, unroll.obs.mask))
         return policy_loss + cfg.value_cost * value_loss - cfg.entropy_cost * entropy
 
-    def env_step(state: A2CState, _):
-        key, key_act, key_env = jax.random.split(state.key, 3)
-
-        # ACT: sample from the softmax over valid actions
-        obs = env.observe(state.evo)
-        logits, _ = apply(state.params, obs)
-        action = jax.random.categorical(key_act, jnp.where(obs.mask, logits, NEG)).astype(jnp.int32)
-
-        # MUTATE AND EVALUATE THE CHILDREN (one batched fitness call)
-        _, evo, reward, terminated, truncated, _ = env.step(key_env, state.evo, action)
-        best_fitness, best_morph = track_best(evo, state.best_fitness, state.best_morph)
-        done = terminated | truncated
-        child_fitness = evo.fitness
-        evo = env.auto_reset(evo, state.first, done)
-
+    def learn(learner: A2CLearner, keys: jax.Array, tr: Transition, step):
+        del keys
         # STORE at this step's place in the unroll
-        t = state.step % cfg.unroll
-        put = lambda store, x: store.at[t].set(x)
+        t = step % cfg.unroll
+        put = lambda store, x: store.at[t].set(x)  # noqa: E731
         unroll = Unroll(
-            obs=jax.tree.map(put, state.unroll.obs, obs),
-            action=state.unroll.action.at[t].set(action),
-            reward=state.unroll.reward.at[t].set(reward * cfg.reward_scale),
-            done=state.unroll.done.at[t].set(done),
+            obs=jax.tree.map(put, learner.unroll.obs, tr.obs),
+            action=put(learner.unroll.action, tr.action),
+            reward=put(learner.unroll.reward, tr.reward * cfg.reward_scale),
+            done=put(learner.unroll.done, tr.done),
         )
 
-        # UPDATE once the unroll is full, bootstrapping from the state after its last step
+        # UPDATE once the unroll is full, bootstrapping from the state after its last step (an
+        # ended episode's bootstrap is masked out, so the state before the restart will do)
         def update(_):
-            loss, grads = jax.value_and_grad(loss_fn)(state.params, unroll, env.observe(evo))
-            updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
-            return optax.apply_updates(state.params, updates), opt_state, loss
+            loss, grads = jax.value_and_grad(loss_fn)(learner.params, unroll, tr.next_obs)
+            updates, opt_state = optimizer.update(grads, learner.opt_state, learner.params)
+            return optax.apply_updates(learner.params, updates), opt_state, loss
 
-        full = t == cfg.unroll - 1
-        params, opt_state, loss = jax.lax.cond(
-            full, update, lambda _: (state.params, state.opt_state, state.loss), None
-        )
-        new_state = A2CState(params, opt_state, unroll, evo, state.first, key, state.step + 1, loss,
-                             best_fitness, best_morph)
-        metrics = {
-            "reward": reward,  # (N,)
-            "fitness": child_fitness,  # (N,)
-            "entropy": jnp.mean(masked_entropy(logits, obs.mask)),  # of the acting policy
-            "loss": loss,
-            "best_fitness": best_fitness,
-        }
-        return new_state, metrics
+        keep = lambda _: (learner.params, learner.opt_state, learner.loss)  # noqa: E731
+        params, opt_state, loss = jax.lax.cond(t == cfg.unroll - 1, update, keep, None)
+        return A2CLearner(params, opt_state, unroll, loss), {"loss": loss}
 
-    def chunk(state: A2CState, num_steps: int):
-        """`num_steps` env steps in one `lax.scan`; metrics stacked along a leading axis."""
-        return jax.lax.scan(env_step, state, length=num_steps)
-
-    init, chunk = jit_replicated(init, chunk, mesh)
-    return init, chunk, lambda params, obs: apply(params, obs)[0]
-
+    return Policy(keys=(1, 1, 0), init=init, act=act, learn=learn,
+                  scores=lambda learner, obs: apply(learner.params, obs)[0])

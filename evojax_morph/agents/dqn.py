@@ -1,7 +1,8 @@
 """Double-DQN over mutations, with a jraph GNN Q-network: one Q-value per (node, mutation).
 
-Act, mutate, evaluate the batch of children, store and update all run in one jitted function,
-`lax.scan`ned over a chunk of environment steps; Python only logs and checkpoints between chunks.
+Acts epsilon-greedily over valid actions, stores every transition in a ring buffer inside the
+jitted state and takes `updates_per_step` minibatch steps per environment step; the shared loop
+(`agents.base`) does the rest.
 """
 
 from __future__ import annotations
@@ -13,16 +14,9 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from evojax_morph.evolution import (
-    NEG,
-    EvolutionEnv,
-    EvoState,
-    Observation,
-    random_valid_actions,
-    track_best,
-)
+from evojax_morph.agents.base import Policy, RunOptions, Transition
+from evojax_morph.evolution import EvolutionEnv, Observation, masked_argmax, random_valid_actions
 from evojax_morph.gnn import TreeGNN, node_features
-from evojax_morph.sharding import jit_replicated
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,6 +38,14 @@ class DQNConfig:
     reward_scale: float = 1.0  # rewards are multiplied by this before learning
     max_grad_norm: float = 10.0
 
+    @classmethod
+    def for_run(cls, env: EvolutionEnv, run: RunOptions) -> DQNConfig:
+        """A run's settings: epsilon anneals over its explore steps, minibatches of 32."""
+        del env
+        return cls(hidden=run.hidden, reward_scale=run.reward_scale,
+                   epsilon_steps=run.explore_steps, learning_starts=run.learning_starts,
+                   batch_size=32)
+
 
 @struct.dataclass
 class Buffer:
@@ -59,25 +61,23 @@ class Buffer:
 
 
 @struct.dataclass
-class DQNState:
+class DQNLearner:
     params: dict
     target_params: dict
     opt_state: optax.OptState
     buffer: Buffer
-    evo: EvoState  # the parallel evolutions
-    first: EvoState  # m0 as reset evaluated it, where ended episodes restart
-    key: jax.Array
-    step: jax.Array  # () int32: env steps done
-    best_fitness: jax.Array  # (): best fitness seen in any env
-    best_morph: object  # the morphology that had it
-
-
-def masked_argmax(q: jax.Array, mask: jax.Array) -> jax.Array:
-    return jnp.argmax(jnp.where(mask, q, NEG), axis=-1)
 
 
 def double_q_target(reward, terminal, discount, q_next_online, q_next_target, next_mask):
-    """r + gamma (1 - terminal) Q_target(s', argmax over valid a' of Q_online(s', a'))."""
+    """r + gamma (1 - terminal) Q_target(s', argmax over valid a' of Q_online(s', a')).
+
+    Args:
+      reward, terminal: (B,) float.
+      q_next_online, q_next_target: (B, A) Q-values of s' by the online and target networks.
+      next_mask: (B, A) bool, the valid actions in s'.
+    Returns:
+      (B,) targets.
+    """
     best = masked_argmax(q_next_online, next_mask)
     value = jnp.take_along_axis(q_next_target, best[..., None], -1)[..., 0]
     value = jnp.where(next_mask.any(-1), value, 0.0)  # no valid action: nothing to bootstrap
@@ -89,17 +89,14 @@ def epsilon(cfg: DQNConfig, step) -> jax.Array:
     return cfg.epsilon_start + frac * (cfg.epsilon_end - cfg.epsilon_start)
 
 
-def make_agent(env: EvolutionEnv, cfg: DQNConfig, mesh=None):
-    """Returns (init(key) -> DQNState, chunk(state, num_steps) -> (state, metrics), q_fn).
-
-    init and chunk are jitted with their outputs replicated on every device of `mesh` (default:
-    all; the fitness inside splits its batch across them): the agent is small, and a state
-    whose placement never changes compiles once.
-    """
+def make_policy(env: EvolutionEnv, cfg: DQNConfig) -> Policy:
+    """Double-DQN's acting and learning; scores are the Q-values."""
     space = env.space
     net = TreeGNN(hidden=cfg.hidden, layers=cfg.layers, out_size=space.num_mutations)
     num_kinds, num_sites = len(space.kind_names), len(space.site_names)
-    optimizer = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate))
+    optimizer = optax.chain(
+        optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate)
+    )
 
     def q_one(params, morph, progress):
         feats = node_features(morph, progress, num_kinds, num_sites)
@@ -110,13 +107,12 @@ def make_agent(env: EvolutionEnv, cfg: DQNConfig, mesh=None):
         """(N, num_actions) Q-values of a batch of observations."""
         return jax.vmap(q_one, (None, 0, 0))(params, obs.morph, obs.progress)
 
-    def init(key: jax.Array) -> DQNState:
-        key_net, key_env, key = jax.random.split(key, 3)
-        obs, evo = env.reset(key_env)
+    def init(keys: jax.Array, obs: Observation) -> DQNLearner:
         single = jax.tree.map(lambda x: x[0], obs)
-        params = net.init(key_net, single.morph, node_features(single.morph, single.progress, num_kinds, num_sites))
+        feats = node_features(single.morph, single.progress, num_kinds, num_sites)
+        params = net.init(keys[0], single.morph, feats)
         cap = cfg.buffer_size
-        empty = lambda x: jnp.zeros((cap,) + x.shape[1:], x.dtype)
+        empty = lambda x: jnp.zeros((cap,) + x.shape[1:], x.dtype)  # noqa: E731
         buffer = Buffer(
             obs=jax.tree.map(empty, obs),
             action=jnp.zeros(cap, jnp.int32),
@@ -126,19 +122,16 @@ def make_agent(env: EvolutionEnv, cfg: DQNConfig, mesh=None):
             pos=jnp.zeros((), jnp.int32),
             size=jnp.zeros((), jnp.int32),
         )
-        best_fitness, best_morph = track_best(evo)
-        return DQNState(
-            params=params,
-            target_params=params,
-            opt_state=optimizer.init(params),
-            buffer=buffer,
-            evo=evo,
-            first=evo,
-            key=key,
-            step=jnp.zeros((), jnp.int32),
-            best_fitness=best_fitness,
-            best_morph=best_morph,
-        )
+        return DQNLearner(params, params, optimizer.init(params), buffer)
+
+    def act(learner: DQNLearner, keys: jax.Array, obs: Observation, step):
+        """Epsilon-greedy over valid actions only."""
+        key_eps, key_rand = keys
+        greedy = masked_argmax(q_fn(learner.params, obs), obs.mask)
+        uniform = random_valid_actions(key_rand, obs.mask)
+        explore = jax.random.uniform(key_eps, (obs.mask.shape[0],)) < epsilon(cfg, step)
+        action = jnp.where(explore, uniform, greedy).astype(jnp.int32)
+        return action, {"epsilon": epsilon(cfg, step)}
 
     def loss_fn(params, target_params, batch):
         obs, action, reward, next_obs, terminal = batch
@@ -154,70 +147,42 @@ def make_agent(env: EvolutionEnv, cfg: DQNConfig, mesh=None):
         )
         return jnp.mean(optax.huber_loss(q_taken, jax.lax.stop_gradient(target)))
 
-    def env_step(state: DQNState, _):
-        key, key_eps, key_rand, key_env, key_upd = jax.random.split(state.key, 5)
-        n = env.num_envs
-
-        # ACT: epsilon-greedy over valid actions only
-        obs = env.observe(state.evo)
-        greedy = masked_argmax(q_fn(state.params, obs), obs.mask)
-        uniform = random_valid_actions(key_rand, obs.mask)
-        explore = jax.random.uniform(key_eps, (n,)) < epsilon(cfg, state.step)
-        action = jnp.where(explore, uniform, greedy).astype(jnp.int32)
-
-        # MUTATE AND EVALUATE THE CHILDREN (one batched fitness call)
-        next_obs, evo, reward, terminated, truncated, _ = env.step(key_env, state.evo, action)
-        best_fitness, best_morph = track_best(evo, state.best_fitness, state.best_morph)
-
+    def learn(learner: DQNLearner, keys: jax.Array, tr: Transition, step):
         # STORE
-        buf = state.buffer
+        buf, n = learner.buffer, tr.action.shape[0]
         idx = (buf.pos + jnp.arange(n)) % cfg.buffer_size
-        put = lambda store, x: store.at[idx].set(x)
+        put = lambda store, x: store.at[idx].set(x)  # noqa: E731
         buf = Buffer(
-            obs=jax.tree.map(put, buf.obs, obs),
-            action=buf.action.at[idx].set(action),
-            reward=buf.reward.at[idx].set(reward * cfg.reward_scale),
-            next_obs=jax.tree.map(put, buf.next_obs, next_obs),
-            terminal=buf.terminal.at[idx].set(terminated),
+            obs=jax.tree.map(put, buf.obs, tr.obs),
+            action=buf.action.at[idx].set(tr.action),
+            reward=buf.reward.at[idx].set(tr.reward * cfg.reward_scale),
+            next_obs=jax.tree.map(put, buf.next_obs, tr.next_obs),
+            terminal=buf.terminal.at[idx].set(tr.terminated),
             pos=(buf.pos + n) % cfg.buffer_size,
             size=jnp.minimum(buf.size + n, cfg.buffer_size),
         )
-        child_fitness = evo.fitness
-        evo = env.auto_reset(evo, state.first, terminated | truncated)
 
         # UPDATE: updates_per_step minibatches, once enough transitions are stored
         def update(carry, key):
             params, opt_state = carry
             idx = jax.random.randint(key, (cfg.batch_size,), 0, jnp.maximum(buf.size, 1))
-            batch = jax.tree.map(lambda x: x[idx], (buf.obs, buf.action, buf.reward, buf.next_obs, buf.terminal))
-            loss, grads = jax.value_and_grad(loss_fn)(params, state.target_params, batch)
+            batch = jax.tree.map(
+                lambda x: x[idx], (buf.obs, buf.action, buf.reward, buf.next_obs, buf.terminal)
+            )
+            loss, grads = jax.value_and_grad(loss_fn)(params, learner.target_params, batch)
             updates, new_opt = optimizer.update(grads, opt_state, params)
             ready = buf.size >= cfg.learning_starts
-            keep = lambda new, old: jnp.where(ready, new, old)
-            new = (jax.tree.map(keep, optax.apply_updates(params, updates), params), jax.tree.map(keep, new_opt, opt_state))
-            return new, loss
+            keep = lambda new, old: jnp.where(ready, new, old)  # noqa: E731
+            params = jax.tree.map(keep, optax.apply_updates(params, updates), params)
+            return (params, jax.tree.map(keep, new_opt, opt_state)), loss
 
         (params, opt_state), losses = jax.lax.scan(
-            update, (state.params, state.opt_state), jax.random.split(key_upd, cfg.updates_per_step)
+            update, (learner.params, learner.opt_state),
+            jax.random.split(keys[0], cfg.updates_per_step),
         )
-        step = state.step + 1
-        target = jax.tree.map(
-            lambda t, p: jnp.where(step % cfg.target_period == 0, p, t), state.target_params, params
-        )
-        new_state = DQNState(params, target, opt_state, buf, evo, state.first, key, step, best_fitness, best_morph)
-        metrics = {
-            "reward": reward,  # (N,)
-            "fitness": child_fitness,  # (N,)
-            "epsilon": epsilon(cfg, state.step),
-            "loss": losses.mean(),
-            "best_fitness": best_fitness,
-        }
-        return new_state, metrics
+        copy = (step + 1) % cfg.target_period == 0
+        target = jax.tree.map(lambda t, p: jnp.where(copy, p, t), learner.target_params, params)
+        return DQNLearner(params, target, opt_state, buf), {"loss": losses.mean()}
 
-    def chunk(state: DQNState, num_steps: int):
-        """`num_steps` env steps in one `lax.scan`; metrics stacked along a leading axis."""
-        return jax.lax.scan(env_step, state, length=num_steps)
-
-    init, chunk = jit_replicated(init, chunk, mesh)
-    return init, chunk, q_fn
-
+    return Policy(keys=(1, 2, 1), init=init, act=act, learn=learn,
+                  scores=lambda learner, obs: q_fn(learner.params, obs))

@@ -14,7 +14,9 @@ from evojax_morph.fitnesses.base import (
     list_fitnesses,
     register,
 )
+from evojax_morph.fitnesses.ppo import standard_ppo
 
 register(ppo.FITNESS, predefined.FITNESS, tame.FITNESS)
 
-__all__ = ["Fitness", "FitnessConfig", "FitnessResult", "get_fitness", "list_fitnesses", "register"]
+__all__ = ["Fitness", "FitnessConfig", "FitnessResult", "get_fitness", "list_fitnesses", "register",
+           "standard_ppo"]

@@ -13,6 +13,11 @@ from evojax_morph.fitnesses.base import Fitness, FitnessConfig, FitnessResult
 from evojax_morph.spaces import Space
 
 
+def standard_ppo(train_steps: int) -> ppo.PPOConfig:
+    """The inner PPO that runs, experiments and tests use, at a budget of `train_steps`."""
+    return ppo.PPOConfig(train_steps=train_steps, num_envs=16, unroll_length=20)
+
+
 def validate(cfg: FitnessConfig) -> None:
     cfg.ppo.validate()
 

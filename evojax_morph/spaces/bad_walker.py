@@ -45,6 +45,7 @@ class BadWalker(Space):
     attr_names = ("length",)
     fitness_scale = 1.0  # typical magnitude of the predefined fitness
     max_nodes = 4
+    default_horizon = 4
 
     def initial(self) -> Morphology:
         return Morphology(

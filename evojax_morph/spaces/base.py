@@ -35,6 +35,7 @@ class Space(abc.ABC):
     attr_names: ClassVar[tuple[str, ...]]
     fitness_scale: ClassVar[float] = 1.0  # typical magnitude of the predefined fitness
     max_nodes: int
+    default_horizon: int  # mutations per episode of the evolution MDP when none is asked for
 
     # --- what a space defines -------------------------------------------------------------
 
@@ -79,12 +80,19 @@ class Space(abc.ABC):
         Inside jit an out-of-range or masked action leaves `m` unchanged. Called eagerly with
         concrete values, it raises `ValueError` for such an action instead.
         """
-        concrete = not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((m, node, mutation)))
+        concrete = not any(
+            isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((m, node, mutation))
+        )
         if concrete:
             self._check_action(m, node, mutation)
         node = jnp.asarray(node, jnp.int32)
         mutation = jnp.asarray(mutation, jnp.int32)
-        in_range = (node >= 0) & (node < self.max_nodes) & (mutation >= 0) & (mutation < self.num_mutations)
+        in_range = (
+            (node >= 0)
+            & (node < self.max_nodes)
+            & (mutation >= 0)
+            & (mutation < self.num_mutations)
+        )
         node_c = jnp.clip(node, 0, self.max_nodes - 1)
         mutation_c = jnp.clip(mutation, 0, self.num_mutations - 1)
         valid = in_range & self.action_mask(m)[node_c, mutation_c]
@@ -188,7 +196,8 @@ class Space(abc.ABC):
         with jax.ensure_compile_time_eval():  # may first be asked for inside a trace
             full = self.layout(self.initial())
             full = full.replace(
-                limb_active=jnp.ones_like(full.limb_active), geom_active=jnp.ones_like(full.geom_active)
+                limb_active=jnp.ones_like(full.limb_active),
+                geom_active=jnp.ones_like(full.geom_active),
             )
             return physics.compile_template(self.plan, full, f"{self.name}_template")
 
@@ -203,7 +212,7 @@ class Space(abc.ABC):
         several hosts, the default would give arrays no single process may close over."""
         return self._mjx_template(bool(jax.config.jax_enable_x64))
 
-    @functools.lru_cache(maxsize=2)
+    @functools.lru_cache(maxsize=2)  # noqa: B019  (spaces live as long as the process)
     def _mjx_template(self, x64: bool) -> mjx.Model:
         del x64  # only a cache key: put_model picks the dtype from the flag
         with jax.ensure_compile_time_eval():

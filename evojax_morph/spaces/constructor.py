@@ -51,7 +51,7 @@ class Constructor(Space):
     def __init__(self, horizon: int = DEFAULT_HORIZON):
         if horizon < 1:
             raise ValueError(f"horizon must be at least 1, got {horizon}")
-        self.horizon = horizon
+        self.horizon = self.default_horizon = horizon
         self.max_nodes = 1 + horizon
 
     def initial(self) -> Morphology:

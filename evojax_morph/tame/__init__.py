@@ -12,7 +12,8 @@ for a classifier that factorises over the J motors. We add TAME's state-coverage
 entropy of where the body ends up, as a Gaussian estimate over the trunk's final displacement
 measured against the state noise sigma (0 for a body that stays put):
 
-    F(m) = sum_j (log K + E[log q(a_j | s_T, m)]) + coverage * 1/2 log det(I + Cov[dx, dz] / sigma^2)
+    F(m) = sum_j (log K + E[log q(a_j | s_T, m)])
+           + coverage * 1/2 log det(I + Cov[dx, dz] / sigma^2)
 
 The reference implementation (github.com/jhejna/morphology-opt) averages the log-likelihood over
 motors and multiplies by (log J)^0.25, and gets coverage only implicitly, from noise added to

@@ -94,7 +94,10 @@ class Tame:
         self._motor_node = np.asarray(plan.limb_nodes)
         freqs = 2 * np.pi / cfg.period * np.arange(1, cfg.num_freqs + 1)
         phases = 2 * np.pi / cfg.num_phases * np.arange(cfg.num_phases)
-        self._freq, self._phase = (jnp.asarray(a, jnp.float32).reshape(-1) for a in np.meshgrid(freqs, phases, indexing="ij"))
+        self._freq, self._phase = (
+            jnp.asarray(a, jnp.float32).reshape(-1)
+            for a in np.meshgrid(freqs, phases, indexing="ij")
+        )
 
     def _node_states(self, data) -> jax.Array:
         xmat = data.xmat[self._node_body]
@@ -115,7 +118,9 @@ class Tame:
             def step(state, t):
                 return task.step(model, state, jnp.cos(freq * t + phase)), state.diverged
 
-            end, diverged = jax.lax.scan(step, start, jnp.arange(cfg.episode_length, dtype=jnp.float32))
+            end, diverged = jax.lax.scan(
+                step, start, jnp.arange(cfg.episode_length, dtype=jnp.float32)
+            )
             diverged = diverged.any() | end.diverged
             first, last = self._node_states(start.data), self._node_states(end.data)
             states = jnp.concatenate([last[:, :2] - first[:, :2], last[:, 2:]], -1)
@@ -142,5 +147,3 @@ def over_bodies(fn, episodes: int):
         return jax.vmap(fn)
     group = max(1, CPU_MAX_WORLDS // episodes)
     return lambda keys, morphs: jax.lax.map(lambda a: fn(*a), (keys, morphs), batch_size=group)
-
-

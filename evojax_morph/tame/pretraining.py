@@ -43,8 +43,13 @@ class Pretrained:
         path.mkdir(parents=True, exist_ok=True)
         with ocp.StandardCheckpointer() as ckpt:
             ckpt.save(path / "params", self.params, force=True)
-        meta = {"space": self.space, "config": dataclasses.asdict(self.config), "history": self.history,
-                "train_bodies": self.train_bodies, "held_out_bodies": self.held_out_bodies}
+        meta = {
+            "space": self.space,
+            "config": dataclasses.asdict(self.config),
+            "history": self.history,
+            "train_bodies": self.train_bodies,
+            "held_out_bodies": self.held_out_bodies,
+        }
         (path / "tame.json").write_text(json.dumps(meta, indent=1))
         return path
 
@@ -60,16 +65,27 @@ class Pretrained:
             )
         meta = json.loads((path / "tame.json").read_text())
         space, cfg = make_space(meta["space"]), TameConfig(**meta["config"])
-        abstract = jax.eval_shape(functools.partial(init_classifier, space, cfg), jax.random.PRNGKey(0))
+        abstract = jax.eval_shape(
+            functools.partial(init_classifier, space, cfg), jax.random.PRNGKey(0)
+        )
         with ocp.StandardCheckpointer() as ckpt:
             params = ckpt.restore(path / "params", abstract)
-        return cls(meta["space"], cfg, params, meta["history"], meta["train_bodies"], meta["held_out_bodies"])
+        return cls(
+            meta["space"],
+            cfg,
+            params,
+            meta["history"],
+            meta["train_bodies"],
+            meta["held_out_bodies"],
+        )
 
 
 def pick_held_out(num_bodies: int, fraction: float, seed: int) -> list[int]:
     """Sorted indices of round(fraction x (num_bodies - 1)) bodies drawn at random from 1 ..
     num_bodies - 1 of an `enumerate_bodies` list (index 0 is m0, which starts every genealogy)."""
-    pick = np.random.default_rng(seed).permutation(num_bodies - 1)[: round(fraction * (num_bodies - 1))]
+    pick = np.random.default_rng(seed).permutation(num_bodies - 1)[
+        : round(fraction * (num_bodies - 1))
+    ]
     return sorted(int(i) + 1 for i in pick)
 
 
@@ -106,8 +122,10 @@ def pretrain(
         n = len(bodies)
         bodies += [bodies[0]] * (-n % population)
         keys = jax.random.split(key, len(bodies))
-        parts = [rollout_batch(keys[i : i + population], stack(bodies[i : i + population]))
-                 for i in range(0, len(bodies), population)]
+        parts = [
+            rollout_batch(keys[i : i + population], stack(bodies[i : i + population]))
+            for i in range(0, len(bodies), population)
+        ]
         return jax.tree.map(lambda *x: jnp.concatenate(x)[:n], *parts)
 
     mutate = jax.jit(space.random_mutation)
@@ -129,13 +147,19 @@ def pretrain(
     for k in jax.random.split(k_init, 2 * population):
         k_len, k_walk = jax.random.split(k)
         m = m0
-        for k_step in jax.random.split(k_walk, int(jax.random.randint(k_len, (), 0, walk_length + 1))):
+        for k_step in jax.random.split(
+            k_walk, int(jax.random.randint(k_len, (), 0, walk_length + 1))
+        ):
             m = child_of(k_step, m)
         bodies.append(m)
     capacity = (generations + 1) * population
     new = rollouts(k_roll, bodies)
-    buffer = jax.tree.map(lambda x: jnp.zeros((capacity, *x.shape[1:]), x.dtype).at[: len(bodies)].set(x), new)
-    morphs = jax.tree.map(lambda x: jnp.repeat(x[:1], capacity, 0).at[: len(bodies)].set(x), stack(bodies))
+    buffer = jax.tree.map(
+        lambda x: jnp.zeros((capacity, *x.shape[1:]), x.dtype).at[: len(bodies)].set(x), new
+    )
+    morphs = jax.tree.map(
+        lambda x: jnp.repeat(x[:1], capacity, 0).at[: len(bodies)].set(x), stack(bodies)
+    )
     held = rollouts(k_held, held_out) if held_out else None
     held_morphs = stack(list(held_out)) if held_out else None
 
@@ -145,7 +169,9 @@ def pretrain(
 
     def loss_fn(params, m, states, labels, labelled):
         """Minus the mean over samples of log q per labelled motor."""
-        loglik, _ = jax.vmap(lambda *a: node_log_likelihood(classifier, params, *a))(m, states, labels, labelled)
+        loglik, _ = jax.vmap(lambda *a: node_log_likelihood(classifier, params, *a))(
+            m, states, labels, labelled
+        )
         return -jnp.mean(loglik / jnp.maximum(labelled.sum(-1), 1))
 
     @jax.jit
@@ -158,9 +184,13 @@ def pretrain(
             k_b, k_e, k_n = jax.random.split(jax.random.fold_in(key, i), 3)
             b = jax.random.randint(k_b, (batch_size,), 0, count)
             e = jax.random.randint(k_e, (batch_size,), 0, cfg.episodes)
-            states = buffer.states[b, e] + cfg.state_noise * jax.random.normal(k_n, (batch_size, *buffer.states.shape[2:]))
+            states = buffer.states[b, e] + cfg.state_noise * jax.random.normal(
+                k_n, (batch_size, *buffer.states.shape[2:])
+            )
             m = jax.tree.map(lambda x: x[b], morphs)
-            loss, grads = jax.value_and_grad(loss_fn)(params, m, states, buffer.labels[b, e], buffer.labelled[b])
+            loss, grads = jax.value_and_grad(loss_fn)(
+                params, m, states, buffer.labels[b, e], buffer.labelled[b]
+            )
             updates, opt_state = opt.update(grads, opt_state)
             return optax.apply_updates(params, updates), opt_state, total + loss
 
@@ -169,16 +199,24 @@ def pretrain(
 
     @jax.jit
     def score(params, morphs, rollouts):
-        """Per body: F, mean log-likelihood per labelled motor, accuracy, and whether it has motors."""
+        """Per body: F, mean log-likelihood per labelled motor, accuracy, and whether it has
+        motors."""
 
         def one(m, r):
             loglik, acc = log_likelihood(classifier, params, m, r)
-            return fitness_from(cfg, loglik, r), loglik.mean() / jnp.maximum(r.labelled.sum(), 1), acc.mean(), r.labelled.any()
+            return (
+                fitness_from(cfg, loglik, r),
+                loglik.mean() / jnp.maximum(r.labelled.sum(), 1),
+                acc.mean(),
+                r.labelled.any(),
+            )
 
         return jax.vmap(one)(morphs, rollouts)
 
     def measure(params, morphs, rollouts, count) -> tuple[dict, np.ndarray]:
-        f, loglik, acc, motors = (x[:count] for x in jax.device_get(score(params, morphs, rollouts)))
+        f, loglik, acc, motors = (
+            x[:count] for x in jax.device_get(score(params, morphs, rollouts))
+        )
         w = motors / max(motors.sum(), 1)  # bodies without motors have nothing to predict
         return {"loglik": float(np.sum(loglik * w)), "accuracy": float(np.sum(acc * w))}, f
 
@@ -190,28 +228,45 @@ def pretrain(
         key, k_train, k_mut, k_roll = jax.random.split(key, 4)
         params, opt_state, loss = train(params, opt_state, morphs, buffer, count, steps, k_train)
         seen, fit = measure(params, morphs, buffer, count)
-        row = {"generation": gen, "bodies": count, "distinct_bodies": len({space.canonical(m) for m in bodies}),
-               "loss": float(loss), "train_loglik": seen["loglik"], "train_accuracy": seen["accuracy"],
-               "chance_loglik": -math.log(cfg.num_primitives), "chance_accuracy": 1 / cfg.num_primitives,
-               "best_fitness": float(fit.max())}
+        row = {
+            "generation": gen,
+            "bodies": count,
+            "distinct_bodies": len({space.canonical(m) for m in bodies}),
+            "loss": float(loss),
+            "train_loglik": seen["loglik"],
+            "train_accuracy": seen["accuracy"],
+            "chance_loglik": -math.log(cfg.num_primitives),
+            "chance_accuracy": 1 / cfg.num_primitives,
+            "best_fitness": float(fit.max()),
+        }
         if held is not None:
             unseen, _ = measure(params, held_morphs, held, len(held_out))
             row.update(held_out_loglik=unseen["loglik"], held_out_accuracy=unseen["accuracy"])
         history.append(row)
-        bar.set_postfix(train_acc=f"{row['train_accuracy']:.2f}", held_out_acc=f"{row.get('held_out_accuracy', np.nan):.2f}")
+        bar.set_postfix(
+            train_acc=f"{row['train_accuracy']:.2f}",
+            held_out_acc=f"{row.get('held_out_accuracy', np.nan):.2f}",
+        )
         if gen + 1 == generations:
             break
         parents = np.argsort(-fit, kind="stable")[:population]
-        children = [child_of(k, bodies[i]) for i, k in zip(parents, jax.random.split(k_mut, len(parents)))]
+        children = [
+            child_of(k, bodies[i]) for i, k in zip(parents, jax.random.split(k_mut, len(parents)))
+        ]
         new = rollouts(k_roll, children)
         put = lambda a, b: a.at[count : count + len(children)].set(b)  # noqa: B023
         buffer, morphs = jax.tree.map(put, buffer, new), jax.tree.map(put, morphs, stack(children))
         bodies += children
 
-    # Fresh rollouts of the genealogy's bodies tell overfitting to rollouts from overfitting to bodies.
+    # Fresh rollouts of the genealogy's bodies tell overfitting to rollouts from overfitting to
+    # bodies.
     fresh = rollouts(jax.random.fold_in(key, 2), bodies)
     seen_fresh, _ = measure(params, morphs, fresh, len(bodies))
-    history[-1].update(train_fresh_loglik=seen_fresh["loglik"], train_fresh_accuracy=seen_fresh["accuracy"])
+    history[-1].update(
+        train_fresh_loglik=seen_fresh["loglik"], train_fresh_accuracy=seen_fresh["accuracy"]
+    )
     train_keys = sorted({space.canonical(m) for m in bodies})
     assert not held_keys & set(train_keys), "a held-out body entered the genealogy"
-    return Pretrained(space.name, cfg, jax.device_get(params), history, train_keys, sorted(held_keys))
+    return Pretrained(
+        space.name, cfg, jax.device_get(params), history, train_keys, sorted(held_keys)
+    )

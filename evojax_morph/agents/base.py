@@ -1,0 +1,134 @@
+"""The skeleton every agent shares: its state, `init`, and the scanned, replicated step loop.
+
+An agent states only how it acts and how it learns (a `Policy`); `from_policy` wraps that in the
+loop observe -> act -> env.step -> track the best body -> restart ended episodes -> learn, run
+`num_steps` times in one jitted `lax.scan` per chunk.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from evojax_morph.evolution import EvolutionEnv, EvoState, Observation, track_best
+from evojax_morph.morphology import Morphology
+from evojax_morph.sharding import jit_replicated
+
+
+@struct.dataclass
+class AgentState:
+    """What every agent carries between steps; `learner` is the agent's own."""
+
+    learner: Any  # the agent's networks, optimiser and memory (None for the baselines)
+    evo: EvoState  # (N, ...) the parallel evolutions
+    first: EvoState  # (N, ...) m0 as reset evaluated it, where ended episodes restart
+    key: jax.Array
+    step: jax.Array  # () int32: env steps done
+    best_fitness: jax.Array  # (): best fitness seen in any env
+    best_morph: Morphology  # the body that had it
+
+
+class RunOptions(NamedTuple):
+    """What a run sets for whichever agent it runs; each agent's config takes its share
+    (`for_run`)."""
+
+    hidden: int  # GNN width
+    reward_scale: float  # rewards are multiplied by this before learning
+    explore_steps: int  # environment steps of exploration (ddqn: epsilon's annealing)
+    learning_starts: int  # transitions stored before learning (ddqn)
+
+
+class Transition(NamedTuple):
+    """One environment step of N evolutions, as `Policy.learn` sees it."""
+
+    obs: Observation  # (N, ...) before the step
+    action: jax.Array  # (N,) int32
+    reward: jax.Array  # (N,) f(child) - f(parent), unscaled
+    next_obs: Observation  # (N, ...) after the step, before ended episodes restart
+    terminated: jax.Array  # (N,) bool
+    done: jax.Array  # (N,) bool: terminated or truncated
+
+
+def _restart(env: EvolutionEnv, parents: EvoState, children: EvoState, first: EvoState, done):
+    del parents
+    return env.auto_reset(children, first, done)
+
+
+class Policy(NamedTuple):
+    """How one agent acts and learns; `from_policy` supplies everything else.
+
+    keys: PRNG keys taken by (init, act, learn) each call, split off the agent's key in one
+      call (init: [init keys..., env, next]; step: [next, act keys..., env, learn keys...]).
+    init(keys, obs) -> learner: the agent's own state, from the first (N, ...) observation.
+    act(learner, keys, obs, step) -> (action (N,) int32, metrics): valid actions only.
+    learn(learner, keys, transition, step) -> (learner, metrics).
+    scores(learner, obs) -> (N, num_actions): whose masked argmax is the greedy action; None
+      for an agent without a policy to roll out.
+    next_evo(env, parents, children, first, done) -> the bodies the next step mutates
+      (default: the children, with ended episodes restarted at `first`).
+    """
+
+    keys: tuple[int, int, int]
+    init: Callable
+    act: Callable
+    learn: Callable
+    scores: Callable | None
+    next_evo: Callable = _restart
+
+
+class Agent(NamedTuple):
+    """init(key) -> AgentState; chunk(state, num_steps) -> (state, metrics stacked over steps):
+    "reward" and "fitness" (num_steps, N), "best_fitness" (num_steps,) and the agent's own;
+    scores(learner, obs) -> (N, num_actions) or None (see `Policy`)."""
+
+    init: Callable
+    chunk: Callable
+    scores: Callable | None
+
+
+def from_policy(env: EvolutionEnv, policy: Policy, mesh=None) -> Agent:
+    """The jitted agent of `policy` on `env`, its state replicated on `mesh` (default: every
+    device; the fitness inside splits its batch across them)."""
+    n_init, n_act, n_learn = policy.keys
+
+    def init(key: jax.Array) -> AgentState:
+        keys = jax.random.split(key, n_init + 2)
+        obs, evo = env.reset(keys[n_init])
+        best_fitness, best_morph = track_best(evo)
+        learner = policy.init(keys[:n_init], obs)
+        return AgentState(learner, evo, evo, keys[n_init + 1], jnp.zeros((), jnp.int32),
+                          best_fitness, best_morph)
+
+    def env_step(state: AgentState, _):
+        keys = jax.random.split(state.key, n_act + n_learn + 2)
+        key_act, key_env, key_learn = keys[1 : 1 + n_act], keys[1 + n_act], keys[2 + n_act :]
+
+        # ACT on valid actions only
+        obs = env.observe(state.evo)
+        action, act_metrics = policy.act(state.learner, key_act, obs, state.step)
+
+        # MUTATE AND EVALUATE THE CHILDREN (one batched fitness call)
+        next_obs, children, reward, terminated, truncated, _ = env.step(key_env, state.evo, action)
+        best_fitness, best_morph = track_best(children, state.best_fitness, state.best_morph)
+        done = terminated | truncated
+        evo = policy.next_evo(env, state.evo, children, state.first, done)
+
+        # LEARN
+        transition = Transition(obs, action, reward, next_obs, terminated, done)
+        learner, learn_metrics = policy.learn(state.learner, key_learn, transition, state.step)
+        new = AgentState(
+            learner, evo, state.first, keys[0], state.step + 1, best_fitness, best_morph
+        )
+        metrics = {"reward": reward, "fitness": children.fitness, "best_fitness": best_fitness}
+        return new, {**metrics, **act_metrics, **learn_metrics}
+
+    def chunk(state: AgentState, num_steps: int):
+        """`num_steps` env steps in one `lax.scan`; metrics stacked along a leading axis."""
+        return jax.lax.scan(env_step, state, length=num_steps)
+
+    init, chunk = jit_replicated(init, chunk, mesh)
+    return Agent(init, chunk, policy.scores)
