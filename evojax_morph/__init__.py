@@ -1,6 +1,7 @@
 """evojax_morph: robot morphology design as a Markov Decision Process, on JAX and MJX."""
 
 from evojax_morph import physics  # noqa: F401  (first: it imports mjx quietly)
+from evojax_morph.determinism import deterministic_gpu
 from evojax_morph.fitness import evaluate, init_params
 from evojax_morph.fitnesses import FitnessConfig, FitnessResult, list_fitnesses, standard_ppo
 from evojax_morph.locomotion import Locomotion, TaskConfig
@@ -19,6 +20,7 @@ __all__ = [
     "Space",
     "TaskConfig",
     "batch_mesh",
+    "deterministic_gpu",
     "evaluate",
     "format_tree",
     "init_distributed",

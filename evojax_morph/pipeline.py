@@ -34,7 +34,8 @@ class RunConfig:
     seed: int = 0
     num_envs: int = 4  # parallel evolutions, each step's fitness batch
     horizon: int = 0  # mutations per episode; 0: the space's default_horizon
-    train_steps: int = 10_000  # PPO control steps per fitness evaluation
+    train_steps: int = 10_000  # PPO control steps per fitness evaluation (per controller)
+    controllers: int = 1  # independent PPO controllers per body; the fitness is their mean
     hidden: int = 64  # GNN width
     explore_steps: int = 20  # ddqn: environment steps over which epsilon anneals from 1 to 0.05
     learning_starts: int = 32  # ddqn: transitions stored before the Q-network learns
@@ -61,7 +62,7 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     (`agents.config_for_run`).
     """
     space = make_space(cfg.space)
-    fit_cfg = FitnessConfig(kind=cfg.fitness, ppo=standard_ppo(cfg.train_steps),
+    fit_cfg = FitnessConfig(kind=cfg.fitness, ppo=standard_ppo(cfg.train_steps, cfg.controllers),
                             classifier=cfg.classifier)
     init_fn, fitness_fn = make_fitness_fn(space, fit_cfg, mesh)
     horizon = cfg.horizon or space.default_horizon

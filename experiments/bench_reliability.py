@@ -44,6 +44,8 @@ VARIANTS = {
     "standard": {},
     # the same sequential length (156 updates of 20 steps) with 4x the envs: 4x the samples
     "wide": dict(num_envs=64, num_minibatches=8, train_steps=200_000),
+    # between the two: 2x the envs and samples at the same sequential length
+    "mid": dict(num_envs=32, num_minibatches=8, train_steps=100_000),
     # standard with the value loss kept small: rewards / 10, so grad clipping acts on the policy too
     "scaled": dict(reward_scaling=0.1),
     # both, with brax-like epochs
@@ -82,7 +84,9 @@ def statistics(f: np.ndarray, k: int, aggregate: str) -> dict:
     }
     pairs = [(i, j) for i in range(groups) for j in range(i + 1, groups)]
     for name, rows in (("20", top20), ("90", order)):
-        out["pair" + name] = float(np.mean([spearman(g[rows, i], g[rows, j]) for i, j in pairs])) if pairs else None
+        out["pair" + name] = (
+            float(np.mean([spearman(g[rows, i], g[rows, j]) for i, j in pairs])) if pairs else None
+        )
     if groups >= 2:
         half_a, half_b = g[:, : groups // 2].mean(1), g[:, groups // 2 : 2 * (groups // 2)].mean(1)
         out["split20"] = spearman(half_a[top20], half_b[top20])
@@ -92,7 +96,7 @@ def statistics(f: np.ndarray, k: int, aggregate: str) -> dict:
 
 
 def compiled_train(space, cfg: em.PPOConfig, batch: int):
-    """`init`, and `train` vmapped over bodies, compiled ahead for a batch: (init, train, compile s)."""
+    """(init, train, compile seconds): `train` vmapped over bodies, compiled for `batch`."""
     init, train = ppo.make_train(space, em.TaskConfig(), cfg)
     keys = jax.random.split(jax.random.PRNGKey(0), batch)
     morphs = jax.vmap(space.random_morphology, (0, None))(keys, 3)
@@ -102,7 +106,9 @@ def compiled_train(space, cfg: em.PPOConfig, batch: int):
     return jax.jit(jax.vmap(init)), fn, time.perf_counter() - start
 
 
-def landscape_fitness(space, cfg: em.PPOConfig, seeds: int, batch: int) -> tuple[np.ndarray, float, list]:
+def landscape_fitness(
+    space, cfg: em.PPOConfig, seeds: int, batch: int
+) -> tuple[np.ndarray, float, list]:
     """(bodies, seeds) single-controller fitness of every body, its seconds (compile excluded)."""
     bodies, _ = space.enumerate_bodies()
     jobs = [(b, s) for b in range(len(bodies)) for s in range(seeds)]
@@ -113,7 +119,9 @@ def landscape_fitness(space, cfg: em.PPOConfig, seeds: int, batch: int) -> tuple
     for start in range(0, len(jobs), batch):
         part = jobs[start : start + batch]
         part = part + [part[0]] * (batch - len(part))  # one compiled shape
-        keys = jnp.stack([jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(7), b), s) for b, s in part])
+        keys = jnp.stack(
+            [jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(7), b), s) for b, s in part]
+        )
         morphs = em.stack([bodies[b] for b, _ in part])
         params = init(jax.vmap(lambda k: jax.random.fold_in(k, 1))(keys))
         t = time.perf_counter()
@@ -136,13 +144,21 @@ def cost(space, cfg: em.PPOConfig, k: int, batch: int, repeats: int) -> dict:
         t = time.perf_counter()
         jax.block_until_ready(train(keys, morphs, params))
         times.append(time.perf_counter() - t)
-    return {"k": k, "batch": batch, "seconds_per_call": float(np.median(times)),
-            "seconds_per_eval": float(np.median(times)) / batch, "compile_s": compile_s}
+    return {
+        "k": k,
+        "batch": batch,
+        "seconds_per_call": float(np.median(times)),
+        "seconds_per_eval": float(np.median(times)) / batch,
+        "compile_s": compile_s,
+    }
 
 
 def table(results: list[dict]) -> str:
-    head = f"{'variant':<12} {'K':>2} {'agg':<4} {'evals':>5} {'cv':>6} {'n/s':>6} {'pair20':>7} {'pair90':>7} " \
-           f"{'split20':>7} {'split90':>7} {'agree':>5} {'top10':>7} {'s/eval':>8}"
+    head = (
+        f"{'variant':<12} {'K':>2} {'agg':<4} {'evals':>5} {'cv':>6} {'n/s':>6} "
+        f"{'pair20':>7} {'pair90':>7} "
+        f"{'split20':>7} {'split90':>7} {'agree':>5} {'top10':>7} {'s/eval':>8}"
+    )
     lines = [head]
     for r in results:
         costs = {c["k"]: c["seconds_per_eval"] for c in r["cost"]}
@@ -150,8 +166,9 @@ def table(results: list[dict]) -> str:
             fmt = lambda x: "-" if x is None else f"{x:.2f}"
             c = costs.get(s["k"])
             lines.append(
-                f"{r['variant']:<12} {s['k']:>2} {s['aggregate']:<4} {s['evaluations_per_body']:>5} {s['cv']:>6.2f} "
-                f"{s['noise_to_signal']:>6.2f} {fmt(s['pair20']):>7} {fmt(s['pair90']):>7} {fmt(s.get('split20')):>7} "
+                f"{r['variant']:<12} {s['k']:>2} {s['aggregate']:<4} "
+                f"{s['evaluations_per_body']:>5} {s['cv']:>6.2f} {s['noise_to_signal']:>6.2f} "
+                f"{fmt(s['pair20']):>7} {fmt(s['pair90']):>7} {fmt(s.get('split20')):>7} "
                 f"{fmt(s.get('split90')):>7} {str(s.get('agree', '-')):>5} {s['top10_mean']:>7.1f} "
                 f"{'-' if c is None else f'{c:.4f}':>8}"
             )
@@ -167,19 +184,26 @@ def plot(results: list[dict], path: Path) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
     for r in results:
         costs = {c["k"]: c["seconds_per_eval"] for c in r["cost"]}
-        for agg, marker in zip(AGGREGATES, "os"):
-            pts = [(costs[s["k"]], s["noise_to_signal"], s["cv"], s["k"]) for s in r["stats"]
-                   if s["aggregate"] == agg and s["k"] in costs]
-            if not pts:
-                continue
-            x, ns, cv, ks = map(np.array, zip(*pts))
-            for ax, y in zip(axes, (ns, cv)):
-                (line,) = ax.plot(x, y, marker=marker, label=f"{r['variant']} ({agg})")
-                for xi, yi, k in zip(x, y, ks):
-                    ax.annotate(f"K={k}", (xi, yi), fontsize=7, color=line.get_color())
+        pts = [
+            (costs[s["k"]], s["noise_to_signal"], s["cv"], s["k"])
+            for s in r["stats"]
+            if s["aggregate"] == "mean" and s["k"] in costs
+        ]
+        if not pts:
+            continue
+        x, ns, cv, ks = map(np.array, zip(*pts))
+        for ax, y in zip(axes, (ns, cv)):
+            (line,) = ax.plot(x, y, marker="o", label=r["variant"])
+            for xi, yi, k in zip(x, y, ks):
+                ax.annotate(f"K={k}", (xi, yi), fontsize=7, color=line.get_color())
+    today = [c["seconds_per_eval"] for r in results if r["variant"] == "standard" for c in r["cost"]
+             if c["k"] == 1]
     for ax, name, target in zip(axes, ("noise-to-signal", "CV of the top 10"), (0.3, 0.15)):
         ax.axhline(target, color="0.5", ls="--", lw=1, label="target")
-        ax.set(xlabel="seconds per evaluation at the main job's batch", ylabel=name)
+        if today:
+            ax.axvline(2 * today[0], color="0.5", ls=":", lw=1, label="2x the standard cost")
+        ax.set(xlabel="seconds per evaluation at the main job's batch", ylabel=name,
+               title="fitness = mean of K controllers")
     axes[0].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -187,13 +211,25 @@ def plot(results: list[dict], path: Path) -> None:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--variants", nargs="+", default=["standard"], choices=list(VARIANTS))
-    parser.add_argument("--seeds", type=int, default=32, help="single-controller evaluations per body")
-    parser.add_argument("--ks", type=int, nargs="+", default=[1, 2, 4, 8], help="controllers per evaluation")
-    parser.add_argument("--cost-ks", type=int, nargs="*", default=None, help="K timed (default: --ks)")
-    parser.add_argument("--batch", type=int, default=2880, help="bodies x seeds per compiled landscape call")
-    parser.add_argument("--cost-batch", type=int, default=256, help="bodies per timed call (the main job's batch)")
+    parser.add_argument(
+        "--seeds", type=int, default=32, help="single-controller evaluations per body"
+    )
+    parser.add_argument(
+        "--ks", type=int, nargs="+", default=[1, 2, 4, 8], help="controllers per evaluation"
+    )
+    parser.add_argument(
+        "--cost-ks", type=int, nargs="*", default=None, help="K timed (default: --ks)"
+    )
+    parser.add_argument(
+        "--batch", type=int, default=2880, help="bodies x seeds per compiled landscape call"
+    )
+    parser.add_argument(
+        "--cost-batch", type=int, default=256, help="bodies per timed call (the main job's batch)"
+    )
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--out", default="runs/reliability")
     args = parser.parse_args(argv)
@@ -210,14 +246,28 @@ def main(argv=None):
             print(f"{name}: already in {path}", flush=True)
             continue
         fitness, seconds, keys = landscape_fitness(space, cfg, args.seeds, args.batch)
-        stats = [statistics(fitness, k, agg) for agg in AGGREGATES for k in args.ks if k <= args.seeds]
-        costs = [cost(space, cfg, k, args.cost_batch, args.repeats) for k in (args.cost_ks or args.ks)]
-        result = {"variant": name, "settings": settings, "landscape_seconds": seconds,
-                  "evaluations": fitness.size, "bodies": keys, "fitness": fitness.round(3).tolist(),
-                  "stats": stats, "cost": costs, "jax": jax.__version__,
-                  "date": time.strftime("%Y-%m-%d")}
+        stats = [
+            statistics(fitness, k, agg) for agg in AGGREGATES for k in args.ks if k <= args.seeds
+        ]
+        costs = [
+            cost(space, cfg, k, args.cost_batch, args.repeats) for k in (args.cost_ks or args.ks)
+        ]
+        result = {
+            "variant": name,
+            "settings": settings,
+            "landscape_seconds": seconds,
+            "evaluations": fitness.size,
+            "bodies": keys,
+            "fitness": fitness.round(3).tolist(),
+            "stats": stats,
+            "cost": costs,
+            "jax": jax.__version__,
+            "date": time.strftime("%Y-%m-%d"),
+        }
         path.write_text(json.dumps(result))
-        print(f"{name}: {fitness.size} evaluations in {seconds:.1f} s (compile excluded)", flush=True)
+        print(
+            f"{name}: {fitness.size} evaluations in {seconds:.1f} s (compile excluded)", flush=True
+        )
         print(table([result]), flush=True)
     results = [json.loads(p.read_text()) for p in sorted(out.glob("reliability_*.json"))]
     print("\n" + table(results))

@@ -37,7 +37,10 @@ def pairs(space) -> dict:
     return {
         "m* -> front foot inward": (star, space.mutate(star, bw.FRONT, 2)),
         "m0 -> long foot removed": (m0, space.mutate(m0, bw.LONG, bw.REMOVE)),
-        "long foot forward -> back foot removed": (long_forward, space.mutate(long_forward, bw.BACK, bw.REMOVE)),
+        "long foot forward -> back foot removed": (
+            long_forward,
+            space.mutate(long_forward, bw.BACK, bw.REMOVE),
+        ),
     }
 
 
@@ -48,12 +51,18 @@ def effect(a: np.ndarray, b: np.ndarray, key: int = 0) -> dict:
     rng = np.random.default_rng(key)
     boot = [rng.choice(a, len(a)).mean() - rng.choice(b, len(b)).mean() for _ in range(4000)]
     greater = (a[:, None] > b[None]).mean() + 0.5 * (a[:, None] == b[None]).mean()
-    return {"difference": float(a.mean() - b.mean()), "ci95": [float(np.quantile(boot, q)) for q in (0.025, 0.975)],
-            "p_greater": float(greater), "mann_whitney_p": float(mannwhitneyu(a, b).pvalue)}
+    return {
+        "difference": float(a.mean() - b.mean()),
+        "ci95": [float(np.quantile(boot, q)) for q in (0.025, 0.975)],
+        "p_greater": float(greater),
+        "mann_whitney_p": float(mannwhitneyu(a, b).pvalue),
+    }
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--variant", default="standard", choices=list(VARIANTS))
     parser.add_argument("--controllers", type=int, default=1)
     parser.add_argument("--seeds", type=int, default=16)
@@ -75,32 +84,57 @@ def main(argv=None):
     parent_out = train(keys[0], parents, init(keys[0]))
     fresh = init(keys[1])
     both = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), parent_out.params, fresh)
-    child_keys, child_morphs = jnp.concatenate([keys[2], keys[2]]), jax.tree.map(lambda x: jnp.concatenate([x, x]),
-                                                                                    children)
+    child_keys, child_morphs = (
+        jnp.concatenate([keys[2], keys[2]]),
+        jax.tree.map(lambda x: jnp.concatenate([x, x]), children),
+    )
     trained = np.asarray(train(child_keys, child_morphs, both).fitness).reshape(2, n, s)
     untrained = np.asarray(evaluate(child_keys, child_morphs, both).fitness).reshape(2, n, s)
     seconds = time.perf_counter() - start
     parent_fit = np.asarray(parent_out.fitness).reshape(n, s)
     rows = []
     for i, name in enumerate(named):
-        rows.append({"pair": name, "parent_mean": float(parent_fit[i].mean()),
-                     "inherited_mean": float(trained[0, i].mean()), "scratch_mean": float(trained[1, i].mean()),
-                     "inherited_std": float(trained[0, i].std()), "scratch_std": float(trained[1, i].std()),
-                     "trained": effect(trained[0, i], trained[1, i]),
-                     "untrained": effect(untrained[0, i], untrained[1, i]),
-                     "inherited": trained[0, i].round(1).tolist(), "scratch": trained[1, i].round(1).tolist()})
+        rows.append(
+            {
+                "pair": name,
+                "parent_mean": float(parent_fit[i].mean()),
+                "inherited_mean": float(trained[0, i].mean()),
+                "scratch_mean": float(trained[1, i].mean()),
+                "inherited_std": float(trained[0, i].std()),
+                "scratch_std": float(trained[1, i].std()),
+                "trained": effect(trained[0, i], trained[1, i]),
+                "untrained": effect(untrained[0, i], untrained[1, i]),
+                "inherited": trained[0, i].round(1).tolist(),
+                "scratch": trained[1, i].round(1).tolist(),
+            }
+        )
         r = rows[-1]
-        print(f"{name:<45} parent {r['parent_mean']:6.1f}  inherited {r['inherited_mean']:6.1f} +- "
-              f"{r['inherited_std']:5.1f}  scratch {r['scratch_mean']:6.1f} +- {r['scratch_std']:5.1f}  "
-              f"diff {r['trained']['difference']:6.1f} [{r['trained']['ci95'][0]:6.1f}, {r['trained']['ci95'][1]:6.1f}]"
-              f"  P {r['trained']['p_greater']:.2f}  p {r['trained']['mann_whitney_p']:.3f}  |  untrained diff "
-              f"{r['untrained']['difference']:6.1f}  P {r['untrained']['p_greater']:.2f}", flush=True)
+        print(
+            f"{name:<45} parent {r['parent_mean']:6.1f}  inherited {r['inherited_mean']:6.1f} +- "
+            f"{r['inherited_std']:5.1f}  scratch {r['scratch_mean']:6.1f} +- "
+            f"{r['scratch_std']:5.1f}  "
+            f"diff {r['trained']['difference']:6.1f} "
+            f"[{r['trained']['ci95'][0]:6.1f}, {r['trained']['ci95'][1]:6.1f}]"
+            f"  P {r['trained']['p_greater']:.2f}  p {r['trained']['mann_whitney_p']:.3f}"
+            "  |  untrained diff "
+            f"{r['untrained']['difference']:6.1f}  P {r['untrained']['p_greater']:.2f}",
+            flush=True,
+        )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    result = {"variant": args.variant, "ppo": dataclasses.asdict(cfg), "seeds": s, "seconds_with_compile": seconds,
-              "device": jax.devices()[0].device_kind, "jax": jax.__version__, "date": time.strftime("%Y-%m-%d"),
-              "pairs": rows}
-    (out / f"inheritance_{args.variant}_k{args.controllers}.json").write_text(json.dumps(result, indent=1))
+    result = {
+        "variant": args.variant,
+        "ppo": dataclasses.asdict(cfg),
+        "seeds": s,
+        "seconds_with_compile": seconds,
+        "device": jax.devices()[0].device_kind,
+        "jax": jax.__version__,
+        "date": time.strftime("%Y-%m-%d"),
+        "pairs": rows,
+    }
+    (out / f"inheritance_{args.variant}_k{args.controllers}.json").write_text(
+        json.dumps(result, indent=1)
+    )
 
 
 if __name__ == "__main__":

@@ -29,7 +29,9 @@ from evojax_morph.spaces import bad_walker as bw
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--seeds", type=int, default=30)
     parser.add_argument("--train-steps", type=int, default=40_000)
     parser.add_argument("--subset", type=int, default=12, help="seeds per test statistic")
@@ -63,16 +65,28 @@ def main(argv=None):
         "inherit": np.asarray(inherited - scratch),
     }
     rng = np.random.default_rng(0)
-    report = {"xla_flags": os.environ.get("XLA_FLAGS", ""), "seeds": n, "train_steps": args.train_steps,
-              "m*_learned": np.asarray(out1.fitness).round(1).tolist(), "zero": np.asarray(zero_fit).round(2).tolist()}
+    report = {
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "seeds": n,
+        "train_steps": args.train_steps,
+        "m*_learned": np.asarray(out1.fitness).round(1).tolist(),
+        "zero": np.asarray(zero_fit).round(2).tolist(),
+    }
     for name, v in values.items():
         medians = np.median(rng.choice(v, (2000, args.subset)), 1)
-        report[name] = {"values": v.round(1).tolist(), "median": float(np.median(v)),
-                        "median_of_subset_p01": float(np.quantile(medians, 0.01)),
-                        "median_of_subset_p05": float(np.quantile(medians, 0.05))}
-        print(f"{name:>9}: median {np.median(v):8.1f}, {args.subset}-seed median 1% / 5% quantile "
-              f"{report[name]['median_of_subset_p01']:8.1f} / {report[name]['median_of_subset_p05']:8.1f}; "
-              f"values {np.sort(v).round(0).tolist()}", flush=True)
+        report[name] = {
+            "values": v.round(1).tolist(),
+            "median": float(np.median(v)),
+            "median_of_subset_p01": float(np.quantile(medians, 0.01)),
+            "median_of_subset_p05": float(np.quantile(medians, 0.05)),
+        }
+        print(
+            f"{name:>9}: median {np.median(v):8.1f}, {args.subset}-seed median 1% / 5% quantile "
+            f"{report[name]['median_of_subset_p01']:8.1f} / "
+            f"{report[name]['median_of_subset_p05']:8.1f}; "
+            f"values {np.sort(v).round(0).tolist()}",
+            flush=True,
+        )
     if args.out:
         with open(args.out, "w") as f:
             json.dump(report, f, indent=1)

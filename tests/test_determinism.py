@@ -18,11 +18,17 @@ print(ok, FLAG in os.environ.get("XLA_FLAGS", ""), float(jax.numpy.ones(3).sum()
 def probe(when: str) -> str:
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     env["JAX_PLATFORMS"] = "cpu"
-    proc = subprocess.run([sys.executable, "-c", PROBE, when], capture_output=True, text=True, env=env, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-c", PROBE, when], capture_output=True, text=True, env=env, timeout=300
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     return proc.stdout.split()
 
 
 def test_switch_before_the_backend_starts_and_refused_after():
-    assert probe("early") == ["True", "True", "3.0"]  # set, and the CPU backend accepts the GPU flag
+    assert probe("early") == [
+        "True",
+        "True",
+        "3.0",
+    ]  # set, and the CPU backend accepts the GPU flag
     assert probe("late") == ["False", "False", "3.0"]  # nothing changed once a backend was up

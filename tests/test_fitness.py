@@ -16,7 +16,7 @@ from evojax_morph.spaces import bad_walker as bw
 
 # One small budget for every test that trains, so the suite compiles PPO once, and one that only
 # evaluates the controller it is given.
-CFG = em.FitnessConfig(ppo=em.PPOConfig(train_steps=40_000, num_envs=16, unroll_length=20))
+CFG = em.FitnessConfig(ppo=em.standard_ppo(40_000))
 EVAL_ONLY = em.FitnessConfig(ppo=dataclasses.replace(CFG.ppo, train_steps=0))
 # Seeds of every learning statistic below: one PPO run is a coin with a bias (a gait is found or
 # not), so the tests assert medians over seeds, with margins measured over 20 other seeds by
@@ -114,6 +114,30 @@ def test_batch_equals_one_at_a_time(walker, trained):
         np.testing.assert_allclose(one.fitness[0], batch.fitness[i], rtol=1e-2, atol=0.05)
         np.testing.assert_allclose(one.fitness_std[0], batch.fitness_std[i], rtol=1e-2, atol=0.05)
     assert len(set(np.round(np.asarray(batch.fitness), 3))) > 2  # different bodies, different results
+
+
+def test_k_controllers_are_k_independent_runs(walker, trained):
+    """With K = 2 controllers a body's fitness is the mean of two single-controller runs, each
+    with its share of the body's key, and both controllers come back (for the children)."""
+    _, keys, out1, _, _, _ = trained
+    star = em.stack([walker.optimum()])
+    fitness = np.asarray(out1.fitness[:SEEDS])
+    pair = np.array([np.argmin(fitness), np.argmax(fitness)])  # two different gaits of m*
+    two = jax.tree.map(lambda x: x[None, pair], out1.params)  # (1 body, 2 controllers, ...)
+    k2 = em.FitnessConfig(ppo=dataclasses.replace(EVAL_ONLY.ppo, controllers=2))
+    both = em.evaluate(walker, star, keys[:1], k2, init_params=two)
+
+    def alone(i, key):
+        params = jax.tree.map(lambda x: x[:, i], two)
+        return em.evaluate(walker, star, key[None], EVAL_ONLY, init_params=params)
+
+    singles = [alone(i, k) for i, k in enumerate(jax.random.split(keys[0], 2))]
+    f = np.array([float(r.fitness[0]) for r in singles])
+    assert abs(f[0] - f[1]) > 1.0  # a mix-up of the two would show
+    np.testing.assert_allclose(both.fitness[0], f.mean(), rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(both.fitness_std[0], f.std(), rtol=1e-3, atol=1e-3)
+    chex.assert_trees_all_equal_shapes(both.params, two)
+    assert both.env_steps == 2 * singles[0].env_steps
 
 
 def test_evaluate_api(walker):

@@ -56,6 +56,8 @@ def test_four_devices_give_one_devices_fitness_and_checkpoints_move(tmp_path):
         "6",
         "--train-steps",
         "320",
+        "--controllers",  # two controllers per body, inherited through the run and the resume
+        "2",
         "--chunk",
         "1",
         "--out",
