@@ -21,6 +21,7 @@ frontier (cost against noise-to-signal) over every variant in --out.
 
   python -m experiments.bench_reliability --variants standard wide --seeds 32   # GPU
   python -m experiments.bench_reliability --variants tiny --seeds 2 --ks 1 2 --cost-batch 4   # CPU
+  python -m experiments.bench_reliability --cost-only --train-steps 10000 --cost-batch 4 --ks 1 4
 """
 
 from __future__ import annotations
@@ -196,14 +197,22 @@ def plot(results: list[dict], path: Path) -> None:
             (line,) = ax.plot(x, y, marker="o", label=r["variant"])
             for xi, yi, k in zip(x, y, ks):
                 ax.annotate(f"K={k}", (xi, yi), fontsize=7, color=line.get_color())
-    today = [c["seconds_per_eval"] for r in results if r["variant"] == "standard" for c in r["cost"]
-             if c["k"] == 1]
+    today = [
+        c["seconds_per_eval"]
+        for r in results
+        if r["variant"] == "standard"
+        for c in r["cost"]
+        if c["k"] == 1
+    ]
     for ax, name, target in zip(axes, ("noise-to-signal", "CV of the top 10"), (0.3, 0.15)):
         ax.axhline(target, color="0.5", ls="--", lw=1, label="target")
         if today:
             ax.axvline(2 * today[0], color="0.5", ls=":", lw=1, label="2x the standard cost")
-        ax.set(xlabel="seconds per evaluation at the main job's batch", ylabel=name,
-               title="fitness = mean of K controllers")
+        ax.set(
+            xlabel="seconds per evaluation at the main job's batch",
+            ylabel=name,
+            title="fitness = mean of K controllers",
+        )
     axes[0].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -231,6 +240,14 @@ def main(argv=None):
         "--cost-batch", type=int, default=256, help="bodies per timed call (the main job's batch)"
     )
     parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument(
+        "--cost-only",
+        action="store_true",
+        help="time --cost-ks only, at --train-steps (no landscape)",
+    )
+    parser.add_argument(
+        "--train-steps", type=int, default=None, help="with --cost-only: the budget"
+    )
     parser.add_argument("--out", default="runs/reliability")
     args = parser.parse_args(argv)
     jax.config.update("jax_default_matmul_precision", "highest")
@@ -240,6 +257,18 @@ def main(argv=None):
     device = jax.devices()[0].device_kind
     for name in args.variants:
         cfg = dataclasses.replace(STANDARD, **VARIANTS[name])
+        if args.cost_only:
+            cfg = dataclasses.replace(cfg, train_steps=args.train_steps or cfg.train_steps)
+            for k in args.cost_ks or args.ks:
+                c = cost(space, cfg, k, args.cost_batch, args.repeats)
+                print(
+                    f"{name} at {cfg.train_steps} steps, K={k}, {args.cost_batch} bodies on "
+                    f"{device}: "
+                    f"{c['seconds_per_call']:.2f} s per call, {c['seconds_per_eval']:.3f} s per "
+                    "evaluation",
+                    flush=True,
+                )
+            continue
         path = out / f"reliability_{name}.json"
         settings = {"ppo": dataclasses.asdict(cfg), "seeds": args.seeds, "device": device}
         if path.exists() and json.loads(path.read_text())["settings"] == settings:
@@ -269,6 +298,8 @@ def main(argv=None):
             f"{name}: {fitness.size} evaluations in {seconds:.1f} s (compile excluded)", flush=True
         )
         print(table([result]), flush=True)
+    if args.cost_only:
+        return
     results = [json.loads(p.read_text()) for p in sorted(out.glob("reliability_*.json"))]
     print("\n" + table(results))
     plot(results, out / "reliability.png")
