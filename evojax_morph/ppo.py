@@ -5,7 +5,8 @@
 different bodies, each with `controllers` x `num_envs` worlds, in one compiled call. With
 `controllers` K > 1 every body trains K independent controllers side by side (parameters with a
 leading (K,) axis, all inherited by a child) and its fitness is their mean: one PPO run is a
-noisy measure of a body, since a controller either finds a gait or does not. It is built from brax's PPO
+noisy measure of a body, since a controller either finds a gait or does not
+(docs/benchmarks.md, "Reliability of the PPO fitness"). It is built from brax's PPO
 parts (networks, GAE, running observation statistics); the log-probability and entropy are our
 own, masked to the motors a body has, since brax's sum over every action dimension of the
 padded template. Parameter shapes are the same for every body of a space, so a child can start
