@@ -138,7 +138,7 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         "--horizon",
         type=int,
         default=defaults.horizon,
-        help="mutations per episode (0: the space's default_horizon: 4 for bad_walker, the "
+        help="mutations per episode (0: the space's default_horizon: 5 for bad_walker, the "
         "capacity for constructor)",
     )
     add(

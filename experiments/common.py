@@ -93,6 +93,8 @@ def run_agent(agent: str, setup: Setup, seeds: int) -> dict:
         "best_fitness": np.asarray(jax.device_get(states.best_fitness)),
         "space": p.space,
         "horizon": p.env.horizon,
+        "states": states,  # the agents' final states, (seeds, ...)
+        "pipeline": p,
     }
 
 

@@ -97,4 +97,4 @@ def test_four_devices_give_one_devices_fitness_and_checkpoints_move(tmp_path):
     assert after[:3] == before and len(after) == 4  # steps 1-2 kept, step 3 added
     summary = json.loads((out / "summary.json").read_text())
     assert summary["env_steps"] == 3 and np.isfinite(summary["best_fitness"])
-    assert len(summary["greedy_trajectory"]) == 5
+    assert len(summary["greedy_trajectory"]) == 6  # m0 and Bad Walker's 5 mutations

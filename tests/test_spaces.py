@@ -105,6 +105,15 @@ def test_bad_walker_predefined_fitness_peaks_at_m_star():
     assert fitness.max() > float(space.predefined_fitness(space.initial()))
 
 
+def test_bad_walker_horizon_leaves_room_to_hold_m_star():
+    """m* is 3 mutations from m0 and an episode leaves at least 2 more (the source's no-ops)."""
+    space = em.make_space("bad_walker")
+    star = space.to_json(space.optimum())
+    assert star not in {space.to_json(m) for m in reachable(space, max_depth=2)}
+    assert star in {space.to_json(m) for m in reachable(space, max_depth=3)}
+    assert space.default_horizon >= 3 + 2
+
+
 # --- Constructor --------------------------------------------------------------------------
 
 

@@ -36,6 +36,10 @@ class BadWalker(Space):
     Predefined fitness: +1 if the long foot is removed, -1 per removed short foot, plus 0.5 x
     closeness (1 - distance / trunk length) of each short foot to its own end of the trunk.
     m* scores 2, the unique maximum.
+
+    Episodes last `default_horizon` = 5 mutations: m* is 3 mutations from m0, so an agent that
+    reaches it has 2 steps left in which holding it (a no-op: any root mutation, or moving a foot
+    where it is) is the best it can do, as in the source's account of Bad Walker.
     """
 
     name = "bad_walker"
@@ -45,7 +49,7 @@ class BadWalker(Space):
     attr_names = ("length",)
     fitness_scale = 1.0  # typical magnitude of the predefined fitness
     max_nodes = 4
-    default_horizon = 4
+    default_horizon = 5  # m* is 3 mutations away: 2 more steps show whether it is held
 
     def initial(self) -> Morphology:
         return Morphology(
