@@ -65,7 +65,7 @@ def broadcast_data(model, batch: int, envs: int):
 def bench_space(name: str, batch: int, envs: int, steps: int, repeats: int, seed: int) -> dict:
     space = em.make_space(name)
     keys = jax.random.split(jax.random.PRNGKey(seed), batch)
-    walk = 3 if name == "bad_walker" else space.horizon
+    walk = space.default_horizon
     morphs = jax.jit(jax.vmap(space.random_morphology, (0, None)), static_argnums=1)(keys, walk)
     m = space.optimum() if name == "bad_walker" else jax.tree.map(lambda x: x[0], morphs)
     worlds = batch * envs

@@ -17,6 +17,6 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 import evojax_morph as em
 
 
-@pytest.fixture(scope="session", params=["bad_walker", "constructor"])
+@pytest.fixture(scope="session", params=["bad_walker", "constructor", "length_walker"])
 def space(request):
     return em.make_space(request.param)

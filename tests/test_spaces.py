@@ -7,6 +7,7 @@ import pytest
 import evojax_morph as em
 from evojax_morph.spaces import bad_walker as bw
 from evojax_morph.spaces import constructor as cs
+from evojax_morph.spaces import length_walker as lw
 
 
 def reachable(space, max_depth=10):
@@ -28,7 +29,7 @@ def reachable(space, max_depth=10):
 
 
 def test_registry():
-    assert em.list_spaces() == ["bad_walker", "constructor"]
+    assert em.list_spaces() == ["bad_walker", "constructor", "length_walker"]
     with pytest.raises(ValueError, match="unknown space 'nope'.*bad_walker"):
         em.make_space("nope")
 
@@ -72,6 +73,28 @@ def test_vmapped_mutate_matches_loop(space):
     batched = jax.jit(jax.vmap(space.mutate))(em.stack(morphs), nodes, mutations)
     for i, m in enumerate(morphs):
         chex.assert_trees_all_equal(jax.tree.map(lambda x: x[i], batched), space.mutate(m, nodes[i], mutations[i]))
+
+
+def reachable_batched(space, batch=256):
+    """Every morphology reachable from m0 and its depth: breadth first, each level's every
+    (body, action) pair mutated in one vmapped call (masked actions leave the body unchanged)."""
+    nodes, mutations = np.divmod(np.arange(space.num_actions), space.num_mutations)
+    mutate_all = jax.jit(jax.vmap(jax.vmap(space.mutate, (None, 0, 0)), (0, None, None)))
+    key = lambda m: space.to_json(m)  # noqa: E731
+    m0 = jax.device_get(space.initial())
+    seen, frontier, depth = {key(m0): (m0, 0)}, [m0], 0
+    while frontier:
+        depth += 1
+        new = []
+        for start in range(0, len(frontier), batch):
+            part = frontier[start : start + batch]
+            children = jax.device_get(mutate_all(em.stack(part + [m0] * (batch - len(part))), nodes, mutations))
+            for child in em.unstack(jax.tree.map(lambda x: x[: len(part)].reshape((-1,) + x.shape[2:]), children)):
+                if key(child) not in seen:
+                    seen[key(child)] = (child, depth)
+                    new.append(child)
+        frontier = new
+    return list(seen.values())
 
 
 # --- Bad Walker ---------------------------------------------------------------------------
@@ -163,3 +186,40 @@ def test_constructor_edges_chain_from_their_attachment_points():
     np.testing.assert_allclose(layout.geom_to[2, 0], 1.5, atol=1e-6)  # geom2_welded
     np.testing.assert_allclose(layout.limb_pos[2], [1.5, 0, 0], atol=1e-6)  # node3's hip
     assert bool(layout.limb_active[2]) and not bool(layout.limb_active[0])
+
+
+# --- Length Walker ------------------------------------------------------------------------
+
+
+def test_length_walker_semantics():
+    space = em.make_space("length_walker")
+    m0 = space.initial()
+    for u in range(space.num_mutations):  # the root's mutations are no-ops
+        chex.assert_trees_all_equal(space.mutate(m0, 0, u), m0)
+    mask = np.asarray(space.action_mask(m0))
+    assert not mask[lw.BACK, lw.LENGTHEN] and not mask[lw.FRONT, lw.LENGTHEN]  # 0.4 m is the longest
+    m = space.mutate(m0, lw.BACK, lw.SHORTEN)
+    assert float(m.attrs[lw.BACK, 0]) == lw.LENGTHS[2] and float(m.attrs[lw.FRONT, 0]) == lw.LENGTHS[3]
+    assert np.asarray(space.action_mask(m))[lw.BACK, lw.LENGTHEN]
+    chex.assert_trees_all_equal(space.mutate(m, lw.BACK, lw.LENGTHEN), m0)  # steps land on the grid
+    m = space.mutate(space.mutate(m, lw.BACK, lw.SHORTEN), lw.BACK, lw.SHORTEN)
+    assert float(m.attrs[lw.BACK, 0]) == lw.LENGTHS[0] and not np.asarray(space.action_mask(m))[lw.BACK, lw.SHORTEN]
+    m = space.mutate(m, lw.FRONT, 0)  # feet may share or swap places
+    assert int(m.site[lw.FRONT]) == 0 and int(m.site[lw.BACK]) == 1
+    # The capsule follows the attribute: the foot ends its length below its hinge.
+    np.testing.assert_allclose(space.layout(m).geom_to[lw.BACK, 2], -lw.LENGTHS[0])
+
+
+def test_length_walker_predefined_optimum_by_enumeration():
+    """All 256 bodies (4 sites x 4 lengths per foot) are reachable; m* alone scores best."""
+    space = em.make_space("length_walker")
+    found = reachable_batched(space)
+    morphs, depths = [m for m, _ in found], np.array([d for _, d in found])
+    assert len(morphs) == (4 * 4) ** 2
+    fitness = np.array(jax.jit(jax.vmap(space.predefined_fitness))(em.stack(morphs)))
+    best = int(np.argmax(fitness))
+    chex.assert_trees_all_equal(morphs[best], space.optimum())
+    assert np.sum(fitness == fitness.max()) == 1 and fitness.max() == 1.0
+    assert float(space.predefined_fitness(space.initial())) == pytest.approx(-1 / 3)
+    # m* is 6 mutations from m0; an episode leaves 2 steps to hold it.
+    assert depths[best] == 6 and space.default_horizon == depths[best] + 2

@@ -8,8 +8,9 @@ from __future__ import annotations
 from evojax_morph.spaces.bad_walker import BadWalker
 from evojax_morph.spaces.base import Space
 from evojax_morph.spaces.constructor import Constructor
+from evojax_morph.spaces.length_walker import LengthWalker
 
-_REGISTRY: dict[str, type[Space]] = {cls.name: cls for cls in (BadWalker, Constructor)}
+_REGISTRY: dict[str, type[Space]] = {cls.name: cls for cls in (BadWalker, Constructor, LengthWalker)}
 
 
 def list_spaces() -> list[str]:
@@ -24,4 +25,4 @@ def make_space(name: str, **kwargs) -> Space:
     return _REGISTRY[name](**kwargs)
 
 
-__all__ = ["BadWalker", "Constructor", "Space", "list_spaces", "make_space"]
+__all__ = ["BadWalker", "Constructor", "LengthWalker", "Space", "list_spaces", "make_space"]
