@@ -1,6 +1,6 @@
 """Reproducible fitness on a GPU: XLA's deterministic GPU ops, asked for before JAX starts.
 
-MJX's step sums forces with scatter-adds (36 in one step of these bodies), which XLA runs on a
+MJX's step sums forces with scatter-adds (18 in one step of these bodies), which XLA runs on a
 GPU with atomic additions: their order, and so the rounding, changes from call to call, and a
 walking gait turns a rounding difference into another controller. Measured on one H200 (jax
 0.11.2, docs/benchmarks.md): two calls of one compiled fitness program with the same keys gave

@@ -38,9 +38,10 @@ def footless(space):
 
 @pytest.fixture(scope="module")
 def trained(walker):
-    """SEEDS seeds of m* trained from scratch, a body with no motor, and children of m*, in one
-    jitted, vmapped `train` call; and the evaluation-only `train`, vmapped and traced once for
-    every batch of bodies below (jit-once check)."""
+    """SEEDS seeds of m* trained from scratch, a body with no motor and a child of m*, in one
+    jitted, vmapped `train` call (the first SEEDS + 2 of `gen1`, whose other bodies are children
+    of m* for the evaluation-only tests); and the evaluation-only `train`, vmapped and traced
+    once for every batch of 2 x SEEDS bodies below (jit-once check)."""
     chex.clear_trace_counter()
     init, train = ppo.make_train(walker, CFG.task, CFG.ppo)
     _, evaluate = ppo.make_train(walker, EVAL_ONLY.task, EVAL_ONLY.ppo)
@@ -49,7 +50,8 @@ def trained(walker):
     keys = jax.random.split(jax.random.PRNGKey(0), 2 * SEEDS)
     fresh = jax.jit(jax.vmap(init))(keys)
     gen1 = em.stack([walker.optimum()] * SEEDS + [footless(walker)] + [child] * (SEEDS - 1))
-    out1 = jax.jit(jax.vmap(train))(keys, gen1, fresh)
+    first = lambda tree: jax.tree.map(lambda x: x[: SEEDS + 2], tree)  # noqa: E731
+    out1 = jax.jit(jax.vmap(train))(keys[: SEEDS + 2], first(gen1), first(fresh))
     return gen1, keys, out1, fresh, child, evaluate
 
 

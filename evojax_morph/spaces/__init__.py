@@ -10,7 +10,9 @@ from evojax_morph.spaces.base import Space
 from evojax_morph.spaces.constructor import Constructor
 from evojax_morph.spaces.length_walker import LengthWalker
 
-_REGISTRY: dict[str, type[Space]] = {cls.name: cls for cls in (BadWalker, Constructor, LengthWalker)}
+_REGISTRY: dict[str, type[Space]] = {
+    cls.name: cls for cls in (BadWalker, Constructor, LengthWalker)
+}
 
 
 def list_spaces() -> list[str]:

@@ -55,7 +55,9 @@ class LengthWalker(Space):
     name = "length_walker"
     kind_names = ("trunk", "back_foot", "front_foot")
     site_names = ("back_end", "back_inner", "front_inner", "front_end")
-    mutation_names = ("to_back_end", "to_back_inner", "to_front_inner", "to_front_end", "lengthen", "shorten")
+    mutation_names = (
+        "to_back_end", "to_back_inner", "to_front_inner", "to_front_end", "lengthen", "shorten"
+    )
     attr_names = ("length",)
     fitness_scale = 1.0  # typical magnitude of the predefined fitness
     max_nodes = 3
@@ -129,7 +131,9 @@ class LengthWalker(Space):
             limb_pos=jnp.stack([x, zeros2, zeros2], -1),  # a foot's hinge sits on the trunk's axis
             geom_active=m.active,
             geom_from=jnp.zeros((3, 3)).at[0, 0].set(-half),
-            geom_to=jnp.concatenate([jnp.array([[half, 0.0, 0.0]]), jnp.stack([zeros2, zeros2, -length], -1)]),
+            geom_to=jnp.concatenate(
+                [jnp.array([[half, 0.0, 0.0]]), jnp.stack([zeros2, zeros2, -length], -1)]
+            ),
             geom_radius=jnp.array([TRUNK_RADIUS, FOOT_RADIUS, FOOT_RADIUS]),
         )
         height = CLEARANCE - physics.lowest_point(self.plan, layout)
