@@ -40,7 +40,7 @@ import evojax_morph as em
 from evojax_morph import ppo
 
 # The main job's inner PPO on a GPU today (run.py: 16 envs, 20-step unrolls, 50,000 steps).
-STANDARD = em.PPOConfig(train_steps=50_000, num_envs=16, unroll_length=20)
+STANDARD = em.standard_ppo(50_000)
 VARIANTS = {
     "standard": {},
     # the same sequential length (156 updates of 20 steps) with 4x the envs: 4x the samples

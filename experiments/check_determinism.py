@@ -37,11 +37,7 @@ def child(batch: int, train_steps: int, controllers: int) -> None:
 
     jax.config.update("jax_default_matmul_precision", "highest")
     space = em.make_space("bad_walker")
-    cfg = em.FitnessConfig(
-        ppo=em.PPOConfig(
-            train_steps=train_steps, num_envs=16, unroll_length=20, controllers=controllers
-        )
-    )
+    cfg = em.FitnessConfig(ppo=em.standard_ppo(train_steps, controllers))
     keys = jax.random.split(jax.random.PRNGKey(0), batch)
     morphs = jax.vmap(space.random_morphology, (0, None))(keys, 3)
     calls, seconds = [], []

@@ -39,11 +39,11 @@ def main(argv=None):
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     walker = em.make_space("bad_walker")
-    cfg = em.PPOConfig(train_steps=args.train_steps, num_envs=16, unroll_length=20)
+    cfg = em.standard_ppo(args.train_steps)
     n = args.seeds
     init, train = ppo.make_train(walker, em.TaskConfig(), cfg)
     train = jax.jit(jax.vmap(train))
-    _, evaluate = ppo.make_train(walker, em.TaskConfig(), em.PPOConfig(train_steps=0, num_envs=16))
+    _, evaluate = ppo.make_train(walker, em.TaskConfig(), em.standard_ppo(0))
     evaluate = jax.jit(jax.vmap(evaluate))
     child = walker.mutate(walker.optimum(), bw.FRONT, 2)  # front foot one site inward
     keys = jax.random.split(jax.random.PRNGKey(args.offset), 2 * n)
