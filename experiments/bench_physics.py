@@ -10,6 +10,7 @@ call that compiles it, and takes the median of `--repeats` timed calls.
 
   python -m experiments.bench_physics                       # CPU-sized defaults
   python -m experiments.bench_physics --batch 1024 --envs 64  # the GPU target
+  python -m experiments.bench_physics --spaces constructor constructor:leg_depth=1,leg_edges=0
 """
 
 from __future__ import annotations
@@ -62,8 +63,16 @@ def broadcast_data(model, batch: int, envs: int):
     return jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, envs) + x.shape), data)
 
 
-def bench_space(name: str, batch: int, envs: int, steps: int, repeats: int, seed: int) -> dict:
-    space = em.make_space(name)
+def make_space(spec: str):
+    """A space from `name` or `name:key=value,...` (integer options), e.g. `constructor:leg_depth=1`."""
+    name, _, options = spec.partition(":")
+    kwargs = dict(kv.split("=") for kv in options.split(",")) if options else {}
+    return em.make_space(name, **{k: int(v) for k, v in kwargs.items()})
+
+
+def bench_space(spec: str, batch: int, envs: int, steps: int, repeats: int, seed: int) -> dict:
+    space = make_space(spec)
+    name = space.name
     keys = jax.random.split(jax.random.PRNGKey(seed), batch)
     walk = space.default_horizon
     morphs = jax.jit(jax.vmap(space.random_morphology, (0, None)), static_argnums=1)(keys, walk)
@@ -83,7 +92,8 @@ def bench_space(name: str, batch: int, envs: int, steps: int, repeats: int, seed
 
     rate = lambda t: worlds * steps / t
     return {
-        "space": name,
+        "space": spec,
+        "template": f"nbody {space.template.nbody}, nv {space.template.nv}, ngeom {space.template.ngeom}",
         "device": jax.devices()[0].device_kind,
         "batch": batch,
         "envs": envs,
@@ -97,10 +107,9 @@ def bench_space(name: str, batch: int, envs: int, steps: int, repeats: int, seed
 
 
 def main():
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--spaces", nargs="+", default=em.list_spaces())
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--spaces", nargs="+", default=em.list_spaces(),
+                        help="names, or name:key=value,... with integer options (constructor:leg_depth=1,leg_edges=0)")
     parser.add_argument("--batch", type=int, default=8, help="B, morphologies")
     parser.add_argument("--envs", type=int, default=8, help="E, worlds per morphology")
     parser.add_argument("--steps", type=int, default=100, help="physics steps per timed call")
@@ -115,13 +124,10 @@ def main():
     ]
     for row in rows:
         print(json.dumps(row))
-    print(
-        f"\n{'space':<12} {'B x E':>12} {'unpadded/s':>12} {'padded/s':>12} {'batched/s':>12} "
-        f"{'padding':>8}"
-    )
+    print(f"\n{'space':<34} {'B x E':>12} {'unpadded/s':>12} {'padded/s':>12} {'batched/s':>12} {'padding':>8}")
     for r in rows:
         print(
-            f"{r['space']:<12} {r['batch']:>5} x {r['envs']:<4} {r['unpadded_sps']:>12.4g} "
+            f"{r['space']:<34} {r['batch']:>5} x {r['envs']:<4} {r['unpadded_sps']:>12.4g} "
             f"{r['padded_sps']:>12.4g} {r['batched_sps']:>12.4g} {r['padding_cost']:>7.0%}"
         )
 

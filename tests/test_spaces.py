@@ -141,20 +141,66 @@ def test_bad_walker_horizon_leaves_room_to_hold_m_star():
 
 
 def test_constructor_semantics():
-    space = em.make_space("constructor", horizon=3)
+    space = em.make_space("constructor", horizon=6)
     m = space.initial()
     assert int(m.num_nodes) == 1 and np.asarray(space.action_mask(m))[0].all()
-    m = space.mutate(m, 0, 4)  # leg at the stick's start
+    m = space.mutate(m, 0, 4)  # leg at the stick's start (node 1)
+    m = space.mutate(m, 0, 4)  # a second leg at the same place (node 2)
+    assert int(m.kind[2]) == cs.LEG and int(m.site[1]) == int(m.site[2]) == 4
+    assert np.asarray(space.action_mask(m))[1].all()  # a leg takes all 6 mutations
+    m = space.mutate(m, 1, 5)  # knee: a leg at leg 1's foot (node 3)
+    m = space.mutate(m, 1, 3)  # an edge welded to leg 1, forward from its foot (node 4)
+    m = space.mutate(m, 4, 5)  # a leg at that edge's end: leg 1's second knee (node 5)
     mask = np.asarray(space.action_mask(m))
-    assert int(m.kind[1]) == cs.LEG and int(m.parent[1]) == 0
-    assert not mask[0, 4]  # that slot is taken
-    assert not mask[1].any()  # legs are leaves
-    m = space.mutate(m, 0, 1)  # edge forward from the stick's start
-    assert int(m.kind[2]) == cs.EDGE
-    m = space.mutate(m, 2, 5)  # leg at that edge's end
-    assert int(m.num_nodes) == 4 == space.max_nodes
-    assert not np.asarray(space.action_mask(m)).any()  # full
-    assert float(space.predefined_fitness(m)) == 100.0 * (2 - 1)
+    assert not mask[[1, 4], 4:].any() and mask[[1, 4], :4].all()  # leg 1: knees full, edge slot left
+    assert not mask[[3, 5], 4:].any()  # knees take no legs (leg_depth 2)
+    assert mask[0].all() and mask[2].all()
+    # Each limb joins the template body it hangs from: knees under leg 1, the edge welded to it.
+    body, geom, _, _ = space._assign(m)
+    parent = space.body_parent
+    assert parent[body[1]] == 0 and parent[body[2]] == 0 and body[1] != body[2]
+    assert parent[body[3]] == body[1] and parent[body[5]] == body[1] and body[4] == body[1]
+    assert space.plan.geom_body[int(geom[4])] == body[1]
+    m = space.mutate(m, 5, 1)  # an edge on a knee (node 6): full
+    assert int(m.num_nodes) == 7 == space.max_nodes
+    assert not np.asarray(space.action_mask(m)).any()
+    assert float(space.predefined_fitness(m)) == 100.0 * (4 - 2)
+
+
+def test_constructor_leaf_legs_option():
+    space = em.make_space("constructor", horizon=4, leg_depth=1, leg_edges=0)
+    m = space.mutate(space.mutate(space.initial(), 0, 5), 0, 5)  # two legs at the stick's end
+    mask = np.asarray(space.action_mask(m))
+    assert not mask[1:3].any() and mask[0].all()  # legs are leaves
+    assert space.template.nbody == 1 + 1 + 4  # world, trunk, 4 leg slots
+
+
+def test_constructor_nodes_never_share_a_template_slot():
+    """Random walks to full capacity: every leg has its own body slot, every limb its own geom."""
+    space = em.make_space("constructor")
+    keys = jax.random.split(jax.random.PRNGKey(0), 64)
+    morphs = jax.vmap(space.random_morphology, (0, None))(keys, space.horizon)
+    body, geom, _, _ = jax.vmap(space._assign)(morphs)
+    kinds, parents = np.asarray(morphs.kind), np.asarray(morphs.parent)
+    knees = 0
+    for b, g, k, p in zip(np.asarray(body), np.asarray(geom), kinds, parents):
+        legs = b[1:][k[1:] == cs.LEG]
+        assert len(set(legs)) == len(legs) and (legs > 0).all()
+        assert len(set(g[1:])) == space.horizon and (g[1:] > 0).all()
+        for i in np.flatnonzero(k == cs.LEG):  # a leg's body hangs from its parent node's body
+            assert space.body_parent[b[i]] == b[p[i]]
+        knees += int((space.body_parent[legs] > 0).sum())
+    assert knees > 0  # the walks did reach knees
+
+
+def test_constructor_best_return_is_a_leg_every_step():
+    """The predefined optimum after `horizon` mutations: 100 x horizon (legs stacked or kneed)."""
+    space = em.make_space("constructor")
+    m = space.initial()
+    for node in (0, 0, 0, 1, 1, 2, 2, 3):  # 3 legs on the stick, knees on three of them
+        m = space.mutate(m, node, 4)
+    assert float(space.predefined_fitness(m)) == 100.0 * space.horizon == 800.0
+    assert not np.asarray(space.action_mask(m)).any()
 
 
 def test_constructor_capacity_follows_horizon():
@@ -182,44 +228,14 @@ def test_constructor_edges_chain_from_their_attachment_points():
     m = space.mutate(m, 0, 3)  # edge forward from the stick's end: x 0.5 -> 1.0
     m = space.mutate(m, 1, 3)  # and again from that edge's end: x 1.0 -> 1.5
     m = space.mutate(m, 2, 5)  # leg at x 1.5
+    m = space.mutate(m, 3, 3)  # an edge welded to that leg, from its foot forward
     layout = space.layout(m)
-    np.testing.assert_allclose(layout.geom_to[2, 0], 1.5, atol=1e-6)  # geom2_welded
-    np.testing.assert_allclose(layout.limb_pos[2], [1.5, 0, 0], atol=1e-6)  # node3's hip
-    assert bool(layout.limb_active[2]) and not bool(layout.limb_active[0])
-
-
-# --- Length Walker ------------------------------------------------------------------------
-
-
-def test_length_walker_semantics():
-    space = em.make_space("length_walker")
-    m0 = space.initial()
-    for u in range(space.num_mutations):  # the root's mutations are no-ops
-        chex.assert_trees_all_equal(space.mutate(m0, 0, u), m0)
-    mask = np.asarray(space.action_mask(m0))
-    assert not mask[lw.BACK, lw.LENGTHEN] and not mask[lw.FRONT, lw.LENGTHEN]  # 0.4 m is the longest
-    m = space.mutate(m0, lw.BACK, lw.SHORTEN)
-    assert float(m.attrs[lw.BACK, 0]) == lw.LENGTHS[2] and float(m.attrs[lw.FRONT, 0]) == lw.LENGTHS[3]
-    assert np.asarray(space.action_mask(m))[lw.BACK, lw.LENGTHEN]
-    chex.assert_trees_all_equal(space.mutate(m, lw.BACK, lw.LENGTHEN), m0)  # steps land on the grid
-    m = space.mutate(space.mutate(m, lw.BACK, lw.SHORTEN), lw.BACK, lw.SHORTEN)
-    assert float(m.attrs[lw.BACK, 0]) == lw.LENGTHS[0] and not np.asarray(space.action_mask(m))[lw.BACK, lw.SHORTEN]
-    m = space.mutate(m, lw.FRONT, 0)  # feet may share or swap places
-    assert int(m.site[lw.FRONT]) == 0 and int(m.site[lw.BACK]) == 1
-    # The capsule follows the attribute: the foot ends its length below its hinge.
-    np.testing.assert_allclose(space.layout(m).geom_to[lw.BACK, 2], -lw.LENGTHS[0])
-
-
-def test_length_walker_predefined_optimum_by_enumeration():
-    """All 256 bodies (4 sites x 4 lengths per foot) are reachable; m* alone scores best."""
-    space = em.make_space("length_walker")
-    found = reachable_batched(space)
-    morphs, depths = [m for m, _ in found], np.array([d for _, d in found])
-    assert len(morphs) == (4 * 4) ** 2
-    fitness = np.array(jax.jit(jax.vmap(space.predefined_fitness))(em.stack(morphs)))
-    best = int(np.argmax(fitness))
-    chex.assert_trees_all_equal(morphs[best], space.optimum())
-    assert np.sum(fitness == fitness.max()) == 1 and fitness.max() == 1.0
-    assert float(space.predefined_fitness(space.initial())) == pytest.approx(-1 / 3)
-    # m* is 6 mutations from m0; an episode leaves 2 steps to hold it.
-    assert depths[best] == 6 and space.default_horizon == depths[best] + 2
+    body, geom, _, _ = space._assign(m)
+    np.testing.assert_allclose(layout.geom_to[int(geom[2]), 0], 1.5, atol=1e-6)
+    leg = int(body[3])
+    np.testing.assert_allclose(layout.limb_pos[leg - 1], [1.5, 0, 0], atol=1e-6)  # the hip
+    assert np.asarray(layout.limb_active).sum() == 1 and bool(layout.limb_active[leg - 1])
+    # the leg's edge, in the leg's frame: from its foot, 0.5 m forward
+    foot = cs.LEG_LENGTH * np.array([-np.sin(cs.LEG_INCLINE), 0, -np.cos(cs.LEG_INCLINE)])
+    np.testing.assert_allclose(layout.geom_from[int(geom[4])], foot, atol=1e-6)
+    np.testing.assert_allclose(layout.geom_to[int(geom[4])], foot + [0.5, 0, 0], atol=1e-6)

@@ -16,7 +16,7 @@ STICK_RADIUS, EDGE_RADIUS, LEG_RADIUS = 0.05, 0.05, 0.04
 LEG_INCLINE = 0.2  # rad: a leg's foot sits behind its hip, which helps it push forward
 CLEARANCE = 0.005  # m between the lowest point and the floor at reset
 STICK, EDGE, LEG = 0, 1, 2  # node kinds
-# Mutation m adds a child in slot m of the node: (kind, attachment point, x direction).
+# Mutation m adds a child at slot m of the node: (kind, attachment point, x direction).
 # Attachment 0 is the node's start point, 1 its end point; direction only matters for edges.
 SLOT_KIND = np.array([EDGE, EDGE, EDGE, EDGE, LEG, LEG])
 SLOT_END = np.array([0, 0, 1, 1, 0, 1])
@@ -25,18 +25,37 @@ DEFAULT_HORIZON = 8
 
 
 class Constructor(Space):
-    """Start from a stick (node 0) and add one limb per mutation.
+    """Start from a stick (node 0) and add one limb per mutation, to any node.
 
-    Every node offers 6 mutations, each filling one child slot of the node: a static horizontal
-    edge (length 0.5) from its start or end point, pointing backward or forward (4 slots), or
-    an actuated leg (length 0.4, inclined by 0.2 rad) hanging from its start or end point
-    (2 slots). A slot takes one child. Edges are welded to the trunk (geoms of the root body);
-    a leg is a body with a hinge and a motor, and a leaf: its own 6 mutations are masked, since
-    a limb on a limb needs a kinematic chain whose shape would vary per morphology, and MJX
-    needs one fixed body tree for a batch. The capacity is 1 + horizon nodes, so a run of
-    `horizon` mutations never runs out of room; once full, every action is masked.
+    Every node, legs included, offers the same 6 mutations, each adding a child at one of its
+    slots: a static horizontal edge (0.5 m) from its start or end point, pointing backward or
+    forward (4 slots), or an actuated leg (0.4 m, inclined by 0.2 rad, a hinge and a motor at its
+    hip) hanging from its start or end point (2 slots). A slot takes any number of children, so
+    several legs or edges can sit at one place. A node's start and end points are, for the
+    stick and an edge, its two ends, and for a leg, its hip and its foot.
 
-    Predefined fitness: 100 x (number of legs - number of edges).
+    Rigid parts: an edge is welded to the body of the node it hangs from (the trunk, or a leg:
+    an edge on a leg swings with it); a leg on a leg (or on an edge welded to a leg) is a knee:
+    a body with its own hinge inside its parent leg's body. MJX needs one body tree for a whole
+    batch, so the padded template fixes the tree: the trunk holds `horizon` leg slots and
+    `horizon` edge slots; a leg of depth d < `leg_depth` holds `knees` leg slots, and every leg
+    holds `leg_edges` edge slots. A new limb takes the next free slot of the body it joins; a
+    mutation that would need a slot the template lacks is masked. The capacity is 1 + horizon
+    nodes; once full, every action is masked.
+
+    Bodies of the source that remain unreachable (with the defaults leg_depth=2, knees=2,
+    leg_edges=2): legs more than `leg_depth` legs deep (a leg on a knee); more than `knees`
+    legs on one leg, or more than `leg_edges` edges welded to one leg (each would need more
+    slots in every leg of the template, and every slot costs physics time on every body of a
+    batch, active or not: docs/benchmarks.md measures it); and any body of more than
+    1 + horizon limbs. `leg_depth=1, leg_edges=0` gives leaf legs on the trunk only: the
+    cheapest template, for long runs where knees are not wanted.
+
+    Observation (of the evolution MDP): the morphology, its action mask (max_nodes x 6), progress.
+    Action: (node, mutation). Reward: the change in fitness.
+    Predefined fitness: 100 x (number of legs - number of edges). Its maximum after the
+    `horizon` mutations of an episode is 100 x horizon (800 by default): a leg at every step,
+    reached by many bodies (legs stacked at one place, knees, or spread out).
     """
 
     name = "constructor"
@@ -48,11 +67,54 @@ class Constructor(Space):
     attr_names = ("length",)
     fitness_scale = 100.0  # typical magnitude of the predefined fitness
 
-    def __init__(self, horizon: int = DEFAULT_HORIZON):
+    def __init__(self, horizon: int = DEFAULT_HORIZON, leg_depth: int = 2, knees: int = 2, leg_edges: int = 2):
         if horizon < 1:
             raise ValueError(f"horizon must be at least 1, got {horizon}")
+        if leg_depth < 1 or knees < 0 or leg_edges < 0:
+            raise ValueError(f"need leg_depth >= 1, knees >= 0, leg_edges >= 0; got {leg_depth}, {knees}, {leg_edges}")
         self.horizon = self.default_horizon = horizon
         self.max_nodes = 1 + horizon
+        self.leg_depth, self.knees, self.leg_edges = leg_depth, knees, leg_edges
+
+        # THE STATIC BODY TREE: body 0 the trunk, then leg slots breadth first (parents first)
+        body_parent, body_depth = [-1], [0]
+        child_legs = [[]]  # child_legs[b]: the leg slots of body b, in the order they fill
+        frontier = [0]
+        while frontier:
+            nxt = []
+            for b in frontier:
+                count = horizon if b == 0 else (knees if body_depth[b] < leg_depth else 0)
+                for _ in range(count):
+                    body_parent.append(b)
+                    body_depth.append(body_depth[b] + 1)
+                    child_legs.append([])
+                    child_legs[b].append(len(body_parent) - 1)
+                    nxt.append(len(body_parent) - 1)
+            frontier = nxt
+        self.body_parent = np.array(body_parent)  # (B,)
+        num_bodies = len(body_parent)
+        width = max(len(c) for c in child_legs)
+        self.leg_slots = np.full((num_bodies, max(width, 1)), -1)  # (B, K): body ids, -1 none
+        for b, c in enumerate(child_legs):
+            self.leg_slots[b, : len(c)] = c
+        self.num_leg_slots = np.array([len(c) for c in child_legs])  # (B,)
+        # GEOMS: the stick; the trunk's edges; then each leg's capsule and its edges
+        edges = [horizon] + [leg_edges] * (num_bodies - 1)
+        self.edge_slots = np.full((num_bodies, max(max(edges), 1)), -1)  # (B, E): geom ids
+        geom_body, geom_names = [0], ["geom0"]
+        self.leg_geom = np.zeros(num_bodies, int)  # (B,): each leg body's capsule (0 for the trunk)
+        for b in range(num_bodies):
+            if b > 0:
+                self.leg_geom[b] = len(geom_body)
+                geom_body.append(b)
+                geom_names.append(f"leg{b}")
+            for k in range(edges[b]):
+                self.edge_slots[b, k] = len(geom_body)
+                geom_body.append(b)
+                geom_names.append(f"edge{b}_{k}")
+        self.num_edge_slots = np.array(edges)  # (B,)
+        self.geom_body = np.array(geom_body)  # (G,)
+        self.geom_names = tuple(geom_names)
 
     def initial(self) -> Morphology:
         n = self.max_nodes
@@ -64,12 +126,41 @@ class Constructor(Space):
             attrs=jnp.zeros((n, 1), jnp.float32).at[0, 0].set(STICK_LENGTH),
         )
 
+    def _assign(self, m: Morphology):
+        """Where each node sits in the template, filling slots in node order.
+
+        Returns:
+          body: (max_nodes,) int32: the template body each node is part of (0 for the stick and
+            the trunk's edges, its own slot for a leg, its leg's for an edge on a leg).
+          geom: (max_nodes,) int32: the geom slot of each node's capsule (0 if inactive).
+          legs: (B,) int32 leg slots filled in each body; edges: (B,) int32 edge slots filled.
+        """
+        leg_slots, edge_slots = jnp.asarray(self.leg_slots), jnp.asarray(self.edge_slots)
+        num_bodies = len(self.body_parent)
+        body = jnp.zeros(self.max_nodes, jnp.int32)
+        geom = jnp.zeros(self.max_nodes, jnp.int32)
+        legs = jnp.zeros(num_bodies, jnp.int32)
+        edges = jnp.zeros(num_bodies, jnp.int32)
+        for i in range(1, self.max_nodes):  # parents come first
+            on = m.active[i]
+            host = body[jnp.maximum(m.parent[i], 0)]
+            is_leg = m.kind[i] == LEG
+            slot = jnp.where(is_leg, legs[host], edges[host])
+            leg_body = leg_slots[host, jnp.minimum(slot, leg_slots.shape[1] - 1)]
+            edge_geom = edge_slots[host, jnp.minimum(slot, edge_slots.shape[1] - 1)]
+            body = body.at[i].set(jnp.where(on, jnp.where(is_leg, leg_body, host), 0))
+            leg_geom = jnp.asarray(self.leg_geom)[jnp.maximum(leg_body, 0)]
+            geom = geom.at[i].set(jnp.where(on, jnp.where(is_leg, leg_geom, edge_geom), 0))
+            legs = legs.at[host].add(on & is_leg)
+            edges = edges.at[host].add(on & ~is_leg)
+        return body, geom, legs, edges
+
     def action_mask(self, m: Morphology) -> jnp.ndarray:
-        # occupied[i, s]: node i already has a child in slot s
-        child = m.active[:, None] & (m.parent[:, None] == jnp.arange(self.max_nodes)[None])
-        occupied = jnp.einsum("ji,js->is", child, m.site[:, None] == jnp.arange(6)[None]) > 0
-        can_grow = m.active & (m.kind != LEG) & (m.num_nodes < self.max_nodes)
-        return can_grow[:, None] & ~occupied
+        body, _, legs, edges = self._assign(m)
+        leg_room = legs < jnp.asarray(self.num_leg_slots)  # (B,)
+        edge_room = edges < jnp.asarray(self.num_edge_slots)
+        room = jnp.where(jnp.asarray(SLOT_KIND)[None] == LEG, leg_room[body][:, None], edge_room[body][:, None])
+        return m.active[:, None] & (m.num_nodes < self.max_nodes) & room
 
     def _apply(self, m: Morphology, node, mutation) -> Morphology:
         new = m.num_nodes  # slots fill in order: nodes are never removed
@@ -90,54 +181,63 @@ class Constructor(Space):
 
     @functools.cached_property
     def plan(self) -> physics.BodyPlan:
-        nodes = range(1, self.max_nodes)
         edge, leg, stick = (0.35, 0.55, 0.8, 1.0), (0.85, 0.5, 0.2, 1.0), (0.3, 0.45, 0.7, 1.0)
+        is_leg = np.zeros(len(self.geom_body), bool)
+        is_leg[self.leg_geom[1:]] = True
         return physics.BodyPlan(
-            # geoms: the stick, then one welded edge per slot (on the root), then one leg per slot
-            geom_names=("geom0",) + tuple(f"geom{i}_welded" for i in nodes)
-            + tuple(f"geom{i}" for i in nodes),
-            geom_body=(0,) * self.max_nodes + tuple(range(1, self.max_nodes)),
-            geom_rgba=(stick,) + (edge,) * self.horizon + (leg,) * self.horizon,
-            limb_nodes=tuple(nodes),
-            limb_parent=(0,) * self.horizon,
+            geom_names=self.geom_names,
+            geom_body=tuple(int(b) for b in self.geom_body),
+            geom_rgba=tuple(stick if g == 0 else (leg if is_leg[g] else edge) for g in range(len(self.geom_body))),
+            limb_nodes=tuple(range(1, len(self.body_parent))),  # template slots, not morphology nodes
+            limb_parent=tuple(int(p) for p in self.body_parent[1:]),
             joint_range=(-1.0, 1.0),
             gear=30.0,
         )
 
     def layout(self, m: Morphology) -> physics.Layout:
-        n = self.max_nodes
-        kind = jnp.where(m.active, m.kind, EDGE)  # inactive slots get valid edge geometry...
-        default = jnp.where(kind == LEG, LEG_LENGTH, EDGE_LENGTH)
-        length = jnp.where(m.active, m.attrs[:, 0], default)  # ...of a valid length
+        n, num_bodies, num_geoms = self.max_nodes, len(self.body_parent), len(self.geom_body)
+        body, geom, _, _ = self._assign(m)
+        kind = jnp.where(m.active, m.kind, EDGE)
+        length = jnp.where(m.active, m.attrs[:, 0], EDGE_LENGTH)
         end_slot = jnp.asarray(SLOT_END)[m.site]
         direction = jnp.asarray(SLOT_DIR)[m.site]
         leg_dir = jnp.array([-jnp.sin(LEG_INCLINE), 0.0, -jnp.cos(LEG_INCLINE)])
+        x_axis = jnp.array([1.0, 0.0, 0.0])
 
-        # END POINTS IN THE ROOT FRAME, parents first
+        # END POINTS OF EVERY NODE IN THE TRUNK FRAME AT REST, parents first
         start = jnp.zeros((n, 3)).at[0, 0].set(-length[0] / 2)
         end = jnp.zeros((n, 3)).at[0, 0].set(length[0] / 2)
         for i in range(1, n):
             p = jnp.maximum(m.parent[i], 0)
             attach = jnp.where(end_slot[i] == 1, end[p], start[p])
-            step = jnp.where(
-                kind[i] == LEG, length[i] * leg_dir, jnp.array([1.0, 0.0, 0.0]) * direction[i] * length[i]
-            )
+            step = jnp.where(kind[i] == LEG, length[i] * leg_dir, x_axis * direction[i] * length[i])
             start, end = start.at[i].set(attach), end.at[i].set(attach + step)
 
-        is_edge = m.active[1:] & (kind[1:] == EDGE)
-        is_leg = m.active[1:] & (kind[1:] == LEG)
-        leg_to = length[1:, None] * leg_dir
-        welded_to = jnp.where((kind[1:] == EDGE)[:, None], end[1:], start[1:] + EDGE_LENGTH * jnp.array([1.0, 0, 0]))
+        # BODY ORIGINS (a leg's at its hip) AND GEOMS, scattered from nodes to template slots
+        is_leg = m.active & (kind == LEG)
+        leg_body = jnp.where(is_leg, body, num_bodies)  # num_bodies: dropped by the scatter
+        origin = jnp.zeros((num_bodies, 3)).at[leg_body].set(start, mode="drop")
+        limb_active = jnp.zeros(num_bodies, bool).at[leg_body].set(True, mode="drop")
+        # inactive geoms keep a valid capsule: a leg's own shape, or an edge along x
+        rest_to = jnp.where(jnp.asarray(np.isin(np.arange(num_geoms), self.leg_geom[1:]))[:, None],
+                            LEG_LENGTH * leg_dir, EDGE_LENGTH * x_axis)
+        slot = jnp.where(m.active, geom, num_geoms)  # the stick is geom 0
+        host_origin = origin[body]  # (n, 3): the origin of each node's body
+        geom_active = jnp.zeros(num_geoms, bool).at[slot].set(True, mode="drop")
+        geom_from = jnp.zeros((num_geoms, 3)).at[slot].set(start - host_origin, mode="drop")
+        geom_to = rest_to.at[slot].set(end - host_origin, mode="drop")
+        radius = jnp.where(kind == LEG, LEG_RADIUS, jnp.where(kind == STICK, STICK_RADIUS, EDGE_RADIUS))
+        geom_radius = jnp.full(num_geoms, EDGE_RADIUS).at[jnp.asarray(self.leg_geom[1:])].set(LEG_RADIUS)
+        geom_radius = geom_radius.at[slot].set(radius, mode="drop")
+        parent_origin = origin[jnp.asarray(self.body_parent[1:])]
         layout = physics.Layout(
             root_pos=jnp.zeros(3),
-            limb_active=is_leg,
-            limb_pos=start[1:],
-            geom_active=jnp.concatenate([jnp.ones(1, bool), is_edge, is_leg]),
-            geom_from=jnp.concatenate([start[:1], start[1:], jnp.zeros((n - 1, 3))]),
-            geom_to=jnp.concatenate([end[:1], welded_to, leg_to]),
-            geom_radius=jnp.concatenate(
-                [jnp.full(1, STICK_RADIUS), jnp.full(n - 1, EDGE_RADIUS), jnp.full(n - 1, LEG_RADIUS)]
-            ),
+            limb_active=limb_active[1:],
+            limb_pos=jnp.where(limb_active[1:, None], origin[1:] - parent_origin, 0.0),
+            geom_active=geom_active,
+            geom_from=geom_from,
+            geom_to=geom_to,
+            geom_radius=geom_radius,
         )
         height = CLEARANCE - physics.lowest_point(self.plan, layout)
         return layout.replace(root_pos=jnp.zeros(3).at[2].set(height))
