@@ -1,12 +1,20 @@
-"""Reproducible fitness on a GPU: XLA's deterministic GPU ops, asked for before JAX starts.
+"""XLA flags this library asks for before JAX starts: reproducible GPU runs, CPU runs that finish.
 
-MJX's step sums forces with scatter-adds (18 in one step of these bodies), which XLA runs on a
-GPU with atomic additions: their order, and so the rounding, changes from call to call, and a
-walking gait turns a rounding difference into another controller. Measured on one H200 (jax
-0.11.2, docs/benchmarks.md): two calls of one compiled fitness program with the same keys gave
-different fitness for all 256 of 256 bodies (by up to 176); with `--xla_gpu_deterministic_ops`
-none differed, within a process or across processes, at 1.38x the time per call. The CPU is
-deterministic without it. The `run` command switches it on unless given --fast-gpu.
+Reproducible fitness on a GPU (`deterministic_gpu`). MJX's step sums forces with scatter-adds (18
+in one step of these bodies), which XLA runs on a GPU with atomic additions: their order, and so
+the rounding, changes from call to call, and a walking gait turns a rounding difference into
+another controller. Measured on one H200 (jax 0.11.2, docs/benchmarks.md): two calls of one
+compiled fitness program with the same keys gave different fitness for all 256 of 256 bodies (by
+up to 176); with `--xla_gpu_deterministic_ops` none differed, within a process or across
+processes, at 1.38x the time per call. The CPU is deterministic without it. The `run` command
+switches it on unless given --fast-gpu.
+
+CPU runs that finish (`cpu_scheduler_workaround`, asked for when evojax_morph is imported). With
+jaxlib 0.10.2, XLA's CPU runtime can deadlock while running a large vmapped MJX program: every
+thread waits on a condition variable and the call never returns. Reproduced here with the
+Constructor's 82-geom template: 300 steps of 48 bodies run, 50 bodies hang, every time, while
+either body alone runs. `--xla_cpu_enable_concurrency_optimized_scheduler=false` (XLA's older
+thunk scheduler) runs it, and no slower.
 """
 
 from __future__ import annotations
@@ -16,6 +24,19 @@ import os
 from jax._src import xla_bridge
 
 FLAG = "--xla_gpu_deterministic_ops=true"
+CPU_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+
+
+def _ask(flag: str) -> bool:
+    """Adds `flag` to XLA_FLAGS unless there already or too late; True if it is in force."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    name = flag.split("=")[0]
+    if any(f.split("=")[0] == name for f in flags.split()):
+        return flag in flags.split()
+    if xla_bridge.backends_are_initialized():
+        return False
+    os.environ["XLA_FLAGS"] = f"{flags} {flag}".strip()
+    return True
 
 
 def deterministic_gpu() -> bool:
@@ -26,10 +47,12 @@ def deterministic_gpu() -> bool:
       reads its flags once), in which case nothing changes: call this first, or set
       XLA_FLAGS=--xla_gpu_deterministic_ops=true in the environment.
     """
-    flags = os.environ.get("XLA_FLAGS", "")
-    if FLAG in flags.split():
-        return True
-    if xla_bridge.backends_are_initialized():
-        return False
-    os.environ["XLA_FLAGS"] = f"{flags} {FLAG}".strip()
-    return True
+    return _ask(FLAG)
+
+
+def cpu_scheduler_workaround() -> bool:
+    """Asks XLA's CPU runtime for the scheduler that does not deadlock (see the module docstring).
+
+    A no-op if XLA_FLAGS already sets the scheduler either way, or if a backend has started.
+    """
+    return _ask(CPU_FLAG)

@@ -64,7 +64,7 @@ def broadcast_data(model, batch: int, envs: int):
 
 
 def make_space(spec: str):
-    """A space from `name` or `name:key=value,...` (integer options), e.g. `constructor:leg_depth=1`."""
+    """A space from `name` or `name:key=value,...` (integer options): `constructor:knees=1`."""
     name, _, options = spec.partition(":")
     kwargs = dict(kv.split("=") for kv in options.split(",")) if options else {}
     return em.make_space(name, **{k: int(v) for k, v in kwargs.items()})
@@ -90,10 +90,11 @@ def bench_space(spec: str, batch: int, envs: int, steps: int, repeats: int, seed
     data = jax.vmap(lambda model: broadcast_data(model, 1, envs)[0])(models)
     t_batched = time_rollout(make_rollout(steps, batched_models=True), models, data, repeats)
 
+    tmpl = space.template
     rate = lambda t: worlds * steps / t
     return {
         "space": spec,
-        "template": f"nbody {space.template.nbody}, nv {space.template.nv}, ngeom {space.template.ngeom}",
+        "template": f"nbody {tmpl.nbody}, nv {tmpl.nv}, ngeom {tmpl.ngeom}",
         "device": jax.devices()[0].device_kind,
         "batch": batch,
         "envs": envs,
@@ -107,9 +108,15 @@ def bench_space(spec: str, batch: int, envs: int, steps: int, repeats: int, seed
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--spaces", nargs="+", default=em.list_spaces(),
-                        help="names, or name:key=value,... with integer options (constructor:leg_depth=1,leg_edges=0)")
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--spaces",
+        nargs="+",
+        default=em.list_spaces(),
+        help="names, or name:key=value,... with integer options (constructor:knees=1,leg_edges=1)",
+    )
     parser.add_argument("--batch", type=int, default=8, help="B, morphologies")
     parser.add_argument("--envs", type=int, default=8, help="E, worlds per morphology")
     parser.add_argument("--steps", type=int, default=100, help="physics steps per timed call")
@@ -124,7 +131,10 @@ def main():
     ]
     for row in rows:
         print(json.dumps(row))
-    print(f"\n{'space':<34} {'B x E':>12} {'unpadded/s':>12} {'padded/s':>12} {'batched/s':>12} {'padding':>8}")
+    print(
+        f"\n{'space':<34} {'B x E':>12} {'unpadded/s':>12} {'padded/s':>12} {'batched/s':>12} "
+        f"{'padding':>8}"
+    )
     for r in rows:
         print(
             f"{r['space']:<34} {r['batch']:>5} x {r['envs']:<4} {r['unpadded_sps']:>12.4g} "

@@ -239,3 +239,38 @@ def test_constructor_edges_chain_from_their_attachment_points():
     foot = cs.LEG_LENGTH * np.array([-np.sin(cs.LEG_INCLINE), 0, -np.cos(cs.LEG_INCLINE)])
     np.testing.assert_allclose(layout.geom_from[int(geom[4])], foot, atol=1e-6)
     np.testing.assert_allclose(layout.geom_to[int(geom[4])], foot + [0.5, 0, 0], atol=1e-6)
+# --- Length Walker ------------------------------------------------------------------------
+
+
+def test_length_walker_semantics():
+    space = em.make_space("length_walker")
+    m0 = space.initial()
+    for u in range(space.num_mutations):  # the root's mutations are no-ops
+        chex.assert_trees_all_equal(space.mutate(m0, 0, u), m0)
+    mask = np.asarray(space.action_mask(m0))
+    assert not mask[lw.BACK, lw.LENGTHEN] and not mask[lw.FRONT, lw.LENGTHEN]  # 0.4 m is the longest
+    m = space.mutate(m0, lw.BACK, lw.SHORTEN)
+    assert float(m.attrs[lw.BACK, 0]) == lw.LENGTHS[2] and float(m.attrs[lw.FRONT, 0]) == lw.LENGTHS[3]
+    assert np.asarray(space.action_mask(m))[lw.BACK, lw.LENGTHEN]
+    chex.assert_trees_all_equal(space.mutate(m, lw.BACK, lw.LENGTHEN), m0)  # steps land on the grid
+    m = space.mutate(space.mutate(m, lw.BACK, lw.SHORTEN), lw.BACK, lw.SHORTEN)
+    assert float(m.attrs[lw.BACK, 0]) == lw.LENGTHS[0] and not np.asarray(space.action_mask(m))[lw.BACK, lw.SHORTEN]
+    m = space.mutate(m, lw.FRONT, 0)  # feet may share or swap places
+    assert int(m.site[lw.FRONT]) == 0 and int(m.site[lw.BACK]) == 1
+    # The capsule follows the attribute: the foot ends its length below its hinge.
+    np.testing.assert_allclose(space.layout(m).geom_to[lw.BACK, 2], -lw.LENGTHS[0])
+
+
+def test_length_walker_predefined_optimum_by_enumeration():
+    """All 256 bodies (4 sites x 4 lengths per foot) are reachable; m* alone scores best."""
+    space = em.make_space("length_walker")
+    found = reachable_batched(space)
+    morphs, depths = [m for m, _ in found], np.array([d for _, d in found])
+    assert len(morphs) == (4 * 4) ** 2
+    fitness = np.array(jax.jit(jax.vmap(space.predefined_fitness))(em.stack(morphs)))
+    best = int(np.argmax(fitness))
+    chex.assert_trees_all_equal(morphs[best], space.optimum())
+    assert np.sum(fitness == fitness.max()) == 1 and fitness.max() == 1.0
+    assert float(space.predefined_fitness(space.initial())) == pytest.approx(-1 / 3)
+    # m* is 6 mutations from m0; an episode leaves 2 steps to hold it.
+    assert depths[best] == 6 and space.default_horizon == depths[best] + 2

@@ -61,17 +61,30 @@ class Constructor(Space):
     name = "constructor"
     kind_names = ("stick", "edge", "leg")
     site_names = ("start_back", "start_fwd", "end_back", "end_fwd", "leg_start", "leg_end")
-    mutation_names = tuple(f"add_{s}" for s in ("edge_start_back", "edge_start_fwd",
-                                                "edge_end_back", "edge_end_fwd",
-                                                "leg_start", "leg_end"))
+    mutation_names = tuple(
+        f"add_{s}"
+        for s in (
+            "edge_start_back",
+            "edge_start_fwd",
+            "edge_end_back",
+            "edge_end_fwd",
+            "leg_start",
+            "leg_end",
+        )
+    )
     attr_names = ("length",)
     fitness_scale = 100.0  # typical magnitude of the predefined fitness
 
-    def __init__(self, horizon: int = DEFAULT_HORIZON, leg_depth: int = 2, knees: int = 2, leg_edges: int = 2):
+    def __init__(
+        self, horizon: int = DEFAULT_HORIZON, leg_depth: int = 2, knees: int = 2, leg_edges: int = 2
+    ):
         if horizon < 1:
             raise ValueError(f"horizon must be at least 1, got {horizon}")
         if leg_depth < 1 or knees < 0 or leg_edges < 0:
-            raise ValueError(f"need leg_depth >= 1, knees >= 0, leg_edges >= 0; got {leg_depth}, {knees}, {leg_edges}")
+            raise ValueError(
+                "need leg_depth >= 1, knees >= 0, leg_edges >= 0; "
+                f"got {leg_depth}, {knees}, {leg_edges}"
+            )
         self.horizon = self.default_horizon = horizon
         self.max_nodes = 1 + horizon
         self.leg_depth, self.knees, self.leg_edges = leg_depth, knees, leg_edges
@@ -159,7 +172,9 @@ class Constructor(Space):
         body, _, legs, edges = self._assign(m)
         leg_room = legs < jnp.asarray(self.num_leg_slots)  # (B,)
         edge_room = edges < jnp.asarray(self.num_edge_slots)
-        room = jnp.where(jnp.asarray(SLOT_KIND)[None] == LEG, leg_room[body][:, None], edge_room[body][:, None])
+        room = jnp.where(
+            jnp.asarray(SLOT_KIND)[None] == LEG, leg_room[body][:, None], edge_room[body][:, None]
+        )
         return m.active[:, None] & (m.num_nodes < self.max_nodes) & room
 
     def _apply(self, m: Morphology, node, mutation) -> Morphology:
@@ -187,8 +202,13 @@ class Constructor(Space):
         return physics.BodyPlan(
             geom_names=self.geom_names,
             geom_body=tuple(int(b) for b in self.geom_body),
-            geom_rgba=tuple(stick if g == 0 else (leg if is_leg[g] else edge) for g in range(len(self.geom_body))),
-            limb_nodes=tuple(range(1, len(self.body_parent))),  # template slots, not morphology nodes
+            geom_rgba=tuple(
+                stick if g == 0 else (leg if is_leg[g] else edge)
+                for g in range(len(self.geom_body))
+            ),
+            limb_nodes=tuple(
+                range(1, len(self.body_parent))
+            ),  # template slots, not morphology nodes
             limb_parent=tuple(int(p) for p in self.body_parent[1:]),
             joint_range=(-1.0, 1.0),
             gear=30.0,
@@ -219,15 +239,22 @@ class Constructor(Space):
         origin = jnp.zeros((num_bodies, 3)).at[leg_body].set(start, mode="drop")
         limb_active = jnp.zeros(num_bodies, bool).at[leg_body].set(True, mode="drop")
         # inactive geoms keep a valid capsule: a leg's own shape, or an edge along x
-        rest_to = jnp.where(jnp.asarray(np.isin(np.arange(num_geoms), self.leg_geom[1:]))[:, None],
-                            LEG_LENGTH * leg_dir, EDGE_LENGTH * x_axis)
+        rest_to = jnp.where(
+            jnp.asarray(np.isin(np.arange(num_geoms), self.leg_geom[1:]))[:, None],
+            LEG_LENGTH * leg_dir,
+            EDGE_LENGTH * x_axis,
+        )
         slot = jnp.where(m.active, geom, num_geoms)  # the stick is geom 0
         host_origin = origin[body]  # (n, 3): the origin of each node's body
         geom_active = jnp.zeros(num_geoms, bool).at[slot].set(True, mode="drop")
         geom_from = jnp.zeros((num_geoms, 3)).at[slot].set(start - host_origin, mode="drop")
         geom_to = rest_to.at[slot].set(end - host_origin, mode="drop")
-        radius = jnp.where(kind == LEG, LEG_RADIUS, jnp.where(kind == STICK, STICK_RADIUS, EDGE_RADIUS))
-        geom_radius = jnp.full(num_geoms, EDGE_RADIUS).at[jnp.asarray(self.leg_geom[1:])].set(LEG_RADIUS)
+        radius = jnp.where(
+            kind == LEG, LEG_RADIUS, jnp.where(kind == STICK, STICK_RADIUS, EDGE_RADIUS)
+        )
+        geom_radius = (
+            jnp.full(num_geoms, EDGE_RADIUS).at[jnp.asarray(self.leg_geom[1:])].set(LEG_RADIUS)
+        )
         geom_radius = geom_radius.at[slot].set(radius, mode="drop")
         parent_origin = origin[jnp.asarray(self.body_parent[1:])]
         layout = physics.Layout(
