@@ -25,12 +25,13 @@ def parse(argv) -> argparse.Namespace:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add = parser.add_argument
-    add("run_dir", help="a run directory of `python -m evojax_morph.run` with the ppo fitness")
+    add("run_dir", nargs="?",
+        help="a run directory of `python -m evojax_morph.run` with the ppo fitness")
     add(
         "--body",
         nargs="+",
         default=["best"],
-        metavar="WHICH",
+        metavar="{best,final,step N}",
         help="best (the best body found), final (the greedy trajectory's last body) or step N "
         "(its N-th body; step 0 is m0)",
     )
@@ -49,6 +50,10 @@ def parse(argv) -> argparse.Namespace:
         help="control steps (50 per second) per frame: 2 gives 25 frames per second")
     add("--no-mp4", action="store_true", help="write the GIF only")
     args = parser.parse_args(argv)
+    if args.run_dir is None and len(args.body) > 1:  # `--body step 2 RUN_DIR`: --body took it
+        args.run_dir = args.body.pop()
+    if args.run_dir is None:
+        parser.error("the following arguments are required: run_dir")
     for name in ("width", "height", "stride"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be positive, got {getattr(args, name)}")

@@ -109,7 +109,7 @@ def test_fallback_video_is_small_and_complete(run_dir, tmp_path, monkeypatch):
 def test_render_command_and_its_bad_input(run_dir, tmp_path, capsys):
     out, *_ = run_dir
     small = ["--backend", "matplotlib", "--width", "64", "--height", "48", "--stride", "50"]
-    assert render.main([str(out), "--body", "step", "1", "--no-mp4", *small]) == 0
+    assert render.main(["--body", "step", "1", str(out), "--no-mp4", *small]) == 0
     assert (out / "step1.gif").stat().st_size > 0 and not (out / "step1.mp4").exists()
     assert "walked" in capsys.readouterr().out
 
