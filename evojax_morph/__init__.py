@@ -1,6 +1,9 @@
 """evojax_morph: robot morphology design as a Markov Decision Process, on JAX and MJX."""
 
 from evojax_morph import physics  # noqa: F401  (first: it imports mjx quietly)
+from evojax_morph.bodylog import best_bodies
+from evojax_morph.controllers import SavedController
+from evojax_morph.controllers import load as load_controller
 from evojax_morph.determinism import cpu_scheduler_workaround, deterministic_gpu
 from evojax_morph.fitness import evaluate, init_params
 from evojax_morph.fitnesses import FitnessConfig, FitnessResult, list_fitnesses, standard_ppo
@@ -9,6 +12,8 @@ from evojax_morph.morphology import Morphology, format_tree, stack, unstack
 from evojax_morph.ppo import Params, PPOConfig, make_train
 from evojax_morph.sharding import batch_mesh, init_distributed
 from evojax_morph.spaces import Space, list_spaces, make_space
+from evojax_morph.video import render as render_video
+from evojax_morph.video import replay
 
 cpu_scheduler_workaround()  # before any JAX backend starts: see evojax_morph/determinism.py
 
@@ -19,9 +24,11 @@ __all__ = [
     "Morphology",
     "PPOConfig",
     "Params",
+    "SavedController",
     "Space",
     "TaskConfig",
     "batch_mesh",
+    "best_bodies",
     "cpu_scheduler_workaround",
     "deterministic_gpu",
     "evaluate",
@@ -30,10 +37,23 @@ __all__ = [
     "init_params",
     "list_fitnesses",
     "list_spaces",
+    "load_controller",
     "make_space",
     "make_train",
+    "render_video",
+    "replay",
     "stack",
     "standard_ppo",
     "unstack",
 ]
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    """`GymEvolutionEnv` on first use: it needs the optional gymnasium (the `gym` extra), so it
+    is left out of `__all__`."""
+    if name == "GymEvolutionEnv":
+        from evojax_morph.gym_env import GymEvolutionEnv
+
+        return GymEvolutionEnv
+    raise AttributeError(f"module 'evojax_morph' has no attribute {name!r}")

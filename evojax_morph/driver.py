@@ -1,8 +1,11 @@
 """The host side of a run: the outer Python loop over jitted chunks, with its files.
 
 `execute(cfg, out, resume)` runs `pipeline.build(cfg)` chunk by chunk and writes the run
-directory: config.json, metrics.csv, TensorBoard events (tb/), curve.png, trajectory.png,
-best.xml, summary.json and Orbax checkpoints, from which `resume` continues.
+directory: config.json, metrics.csv, bodies.sqlite (every body evaluated, `bodylog`),
+TensorBoard events (tb/), curve.png, trajectory.png, best.xml, summary.json and Orbax
+checkpoints, from which `resume` continues; with the PPO fitness also controllers/ (the trained
+controllers of the best body and of the greedy trajectory's, `controllers`) and best.gif (the
+best body walking, `video`).
 """
 
 from __future__ import annotations
@@ -16,8 +19,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from evojax_morph import plots
-from evojax_morph.pipeline import RunConfig, build, make_greedy_rollout
+from evojax_morph import bodylog, controllers, plots, video
+from evojax_morph.pipeline import Greedy, Pipeline, RunConfig, build, make_greedy_rollout
 from evojax_morph.sharding import batch_mesh, replicated, to_host
 
 
@@ -55,6 +58,7 @@ def execute(cfg: RunConfig, out: Path, resume: bool) -> None:
     key = jax.random.PRNGKey(cfg.seed)
     key_init, key_greedy = jax.random.split(key)
     rows = []
+    log_bodies = bodylog.BodyLog(out / "bodies.sqlite", p.space) if lead else None
     if resume and manager.latest_step() is not None:
         step = manager.latest_step()
         # Restored onto this run's devices, however many the saving run had.
@@ -66,11 +70,18 @@ def execute(cfg: RunConfig, out: Path, resume: bool) -> None:
         state = manager.restore(step, args=restore)["state"]
         with open(out / "metrics.csv") as f:
             rows = [r for r in csv.DictReader(f) if int(r["step"]) <= step]
+        if lead:
+            log_bodies.truncate(step)
         log(f"resumed at step {step}")
     else:
         log("evaluating m0 in every evolution...")
         state = p.agent.init(key_init)
         step = 0
+        first = to_host(state.first)
+        if lead:
+            log_bodies.truncate(-1)
+            log_bodies.add(0, first.morph, first.fitness, first.fitness_std, first.diverged)
+            log_bodies.commit()
 
     from tensorboardX import SummaryWriter
     from tqdm import tqdm
@@ -83,7 +94,13 @@ def execute(cfg: RunConfig, out: Path, resume: bool) -> None:
         n = min(cfg.chunk, cfg.steps - step)
         state, metrics = p.agent.chunk(state, n)
         metrics = to_host(metrics)
+        bodies = metrics.pop("bodies")
         for i in range(n):
+            if lead:
+                at = lambda tree, i=i: jax.tree.map(lambda x: x[i], tree)  # noqa: E731
+                log_bodies.add(step + i + 1, at(bodies["morph"]), bodies["fitness"][i],
+                               bodies["fitness_std"][i], bodies["diverged"][i],
+                               at(bodies["parent"]))
             reward = metrics["reward"][i]
             row = {
                 "step": step + i + 1,
@@ -104,6 +121,7 @@ def execute(cfg: RunConfig, out: Path, resume: bool) -> None:
         bar.update(n)
         bar.set_postfix(reward=f"{row['reward_median']:.3g}", best=f"{row['best_fitness']:.3g}")
         if lead:
+            log_bodies.commit()
             with open(out / "metrics.csv", "w", newline="") as f:
                 w = csv.DictWriter(f, fieldnames=list(rows[0]))
                 w.writeheader()
@@ -114,19 +132,43 @@ def execute(cfg: RunConfig, out: Path, resume: bool) -> None:
     manager.wait_until_finished()
 
     # RESULTS
-    best, best_fitness = to_host((state.best_morph, state.best_fitness))
+    best, best_fitness, best_params = to_host(
+        (state.best_morph, state.best_fitness, state.best_params)
+    )
     greedy = None
     if p.agent.scores is not None:  # the baselines have no policy to roll out
         greedy = make_greedy_rollout(p)(state.learner, state.first, key_greedy)
+    saved = save_controllers(out, p, cfg.seed, best, float(best_fitness), best_params, greedy)
     if lead:
         writer.close()
-        write_results(out, p.space, rows, best, float(best_fitness), greedy, step)
+        log_bodies.close()
+        write_results(out, p.space, rows, best, float(best_fitness), greedy, step, saved)
+
+
+def save_controllers(out: Path, p: Pipeline, seed: int, best, best_fitness: float, best_params,
+                     greedy: Greedy | None) -> list[str]:
+    """controllers/best and controllers/stepT for the greedy trajectory's bodies, for a fitness
+    that trains controllers; every process calls it. Returns the names saved."""
+    if not controllers.has_controllers(p.fitness):
+        return []
+    bodies = [("best", best, best_params, best_fitness)]
+    if greedy is not None:
+        bodies += [(f"step{t}", m, params, f) for t, (m, params, f)
+                   in enumerate(zip(greedy.morphs, greedy.params, greedy.fitness))]
+    for name, morph, params, fitness in bodies:
+        label = name if name == "best" else f"step {name[4:]}"
+        saved = controllers.SavedController(p.space, p.fitness, seed, morph, params, fitness,
+                                            label)
+        controllers.save(out / controllers.DIR / name, saved)
+    return [name for name, *_ in bodies]
 
 
 def write_results(
-    out: Path, space, rows: list[dict], best, best_fitness: float, greedy, steps: int
+    out: Path, space, rows: list[dict], best, best_fitness: float, greedy: Greedy | None,
+    steps: int, saved: list[str]
 ) -> None:
-    """curve.png, best.xml, trajectory.png (if `greedy`) and summary.json, and a printed digest."""
+    """curve.png, best.xml, trajectory.png (if `greedy`), summary.json and best.gif (if
+    controllers were `saved`), and a printed digest with the best bodies of the body log."""
     col = lambda name: np.array([r[name] for r in rows], float)  # noqa: E731  (resumed: strings)
     plots.plot_curve(
         out / "curve.png", col("step"), col("reward_median"), col("reward_q25"), col("reward_q75")
@@ -137,12 +179,14 @@ def write_results(
         "best_morphology": best.to_dict(),
         "env_steps": steps,
         "greedy_trajectory": None,
+        "best_bodies": bodylog.best_bodies(out / "bodies.sqlite", 10),
+        "controllers": saved,
     }
     print(f"\nbest morphology (fitness {best_fitness:.4g}):")
     print(space.format(best))
-    written = "curve.png best.xml summary.json metrics.csv tb/ checkpoints/"
+    written = "curve.png best.xml summary.json metrics.csv bodies.sqlite tb/ checkpoints/"
     if greedy is not None:
-        morphs, fitness, actions = greedy
+        morphs, fitness, actions, _ = greedy
         plots.plot_trajectory(out / "trajectory.png", space, morphs, fitness, actions)
         summary["greedy_trajectory"] = [
             {"action": a, "fitness": f, "morphology": m.to_dict()}
@@ -153,5 +197,23 @@ def write_results(
             print(f"  {a:<32} fitness {f:.4g}")
         print(f"\nfinal greedy morphology:\n{space.format(morphs[-1])}")
         written = "trajectory.png " + written
+    print_best_bodies(summary["best_bodies"])
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    if saved:
+        written += " controllers/"
+        shown = video.render(out, "best", mp4=False)
+        for note in shown.notes:
+            print(f"best.gif: {note}")
+        walked = shown.replay.distance[-1]
+        written += f" best.gif ({shown.backend}; the best body walks {walked:.2f} m)"
+    else:
+        print("\nno controllers to keep: the fitness trains none (only ppo does), so no best.gif")
     print(f"\nwrote {out}/: {written}")
+
+
+def print_best_bodies(best: list[dict]) -> None:
+    print(f"\nthe {len(best)} best distinct bodies evaluated (bodies.sqlite):")
+    print(f"  {'best f':>9} {'mean f':>9} {'evals':>5} {'first':>5}  body")
+    for b in best:
+        print(f"  {b['best_fitness']:9.4g} {b['mean_fitness']:9.4g} {b['evaluations']:5d} "
+              f"{b['first_step']:5d}  {b['body']}")

@@ -35,6 +35,8 @@ class EvoState:
     morph: Morphology  # (N, ...) current bodies
     params: Any  # (N, ...) their controllers
     fitness: jax.Array  # (N,)
+    fitness_std: jax.Array  # (N,): spread of that fitness (over the K controllers, or episodes)
+    diverged: jax.Array  # (N,) bool: a simulation of the evaluation diverged
     steps: jax.Array  # (N,) int32: mutations done this episode
 
 
@@ -42,8 +44,9 @@ class EvoState:
 class EvolutionEnv:
     """`num_envs` parallel evolutions of `space` under a batched `fitness_fn`.
 
-    fitness_fn(keys (N,), morphs (N, ...), params (N, ...)) -> (fitness (N,), params (N, ...)),
-    e.g. from `fitness.make_fitness_fn`; init_fn(key) -> one controller.
+    fitness_fn(keys (N,), morphs (N, ...), params (N, ...)) -> `FitnessResult` of (N,) arrays
+    and the trained controllers, e.g. from `fitness.make_fitness_fn`; init_fn(key) -> one
+    controller.
     """
 
     space: Space
@@ -63,9 +66,13 @@ class EvolutionEnv:
             lambda x: jnp.broadcast_to(x, (self.num_envs,) + x.shape), self.space.initial()
         )
         params = jax.vmap(self.init_fn)(jax.random.split(key_init, self.num_envs))
-        fitness, params = self.fitness_fn(jax.random.split(key_fit, self.num_envs), morph, params)
-        state = EvoState(morph, params, fitness, jnp.zeros(self.num_envs, jnp.int32))
+        out = self.fitness_fn(jax.random.split(key_fit, self.num_envs), morph, params)
+        state = self._evaluated(morph, out, jnp.zeros(self.num_envs, jnp.int32))
         return self.observe(state), state
+
+    @staticmethod
+    def _evaluated(morph: Morphology, out, steps: jax.Array) -> EvoState:
+        return EvoState(morph, out.params, out.fitness, out.fitness_std, out.diverged, steps)
 
     def step(self, key: jax.Array, state: EvoState, action: jax.Array):
         """Mutate every env's body, evaluate the children in one batch.
@@ -75,29 +82,26 @@ class EvolutionEnv:
         """
         nm = self.space.num_mutations
         child = jax.vmap(self.space.mutate)(state.morph, action // nm, action % nm)
-        fitness, params = self.fitness_fn(jax.random.split(key, self.num_envs), child, state.params)
-        steps = state.steps + 1
-        new = EvoState(child, params, fitness, steps)
-        terminated = steps >= self.horizon
+        out = self.fitness_fn(jax.random.split(key, self.num_envs), child, state.params)
+        new = self._evaluated(child, out, state.steps + 1)
+        terminated = new.steps >= self.horizon
         truncated = jnp.zeros_like(terminated)
-        return self.observe(new), new, fitness - state.fitness, terminated, truncated, {}
+        return self.observe(new), new, new.fitness - state.fitness, terminated, truncated, {}
 
     def auto_reset(self, state: EvoState, first: EvoState, done: jax.Array) -> EvoState:
         """Envs whose episode ended start again from `first` (m0 as `reset` evaluated it)."""
         return tree_select(done, first, state)
 
 
-def track_best(evo: EvoState, best_fitness=-jnp.inf, best_morph: Morphology | None = None):
-    """The best (fitness, morphology) so far, updated with this step's bodies; with no best so
-    far, the best of `evo`."""
-    if best_morph is None:
-        best_morph = jax.tree.map(lambda x: x[0], evo.morph)
-    best = jnp.argmax(evo.fitness)
-    improved = evo.fitness[best] > best_fitness
-    morph = jax.tree.map(
-        lambda new, old: jnp.where(improved, new[best], old), evo.morph, best_morph
-    )
-    return jnp.where(improved, evo.fitness[best], best_fitness), morph
+def track_best(evo: EvoState, best=None):
+    """The best (fitness, morphology, controller) so far, updated with this step's bodies; with
+    no best so far (`best` None), the best of `evo`."""
+    if best is None:
+        best = (-jnp.inf,) + jax.tree.map(lambda x: x[0], (evo.morph, evo.params))
+    i = jnp.argmax(evo.fitness)
+    improved = evo.fitness[i] > best[0]
+    new = jax.tree.map(lambda x: x[i], (evo.fitness, evo.morph, evo.params))
+    return jax.tree.map(lambda n, o: jnp.where(improved, n, o), new, tuple(best))
 
 
 def masked_argmax(scores: jax.Array, mask: jax.Array) -> jax.Array:

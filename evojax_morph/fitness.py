@@ -23,18 +23,13 @@ def make_fitness_fn(space: Space, cfg: FitnessConfig, mesh=None):
     """`(init, fitness)`, pure and jittable, for use inside a larger jitted loop.
 
     init(key) -> params of one controller (a dummy scalar for the kinds without one);
-    fitness(keys (B,), morphs (B, ...), params (B, ...)) -> (fitness (B,), params (B, ...)):
-    the PPO fitness trains each body starting from the given controller (inheritance), the
-    batch split across the devices of `mesh` (default: all; see `sharding.batch_mesh`).
+    fitness(keys (B,), morphs (B, ...), params (B, ...)) -> `FitnessResult` of (B,) arrays with
+    the (B, ...) trained controllers: the PPO fitness trains each body starting from the given
+    controller (inheritance), the batch split across the devices of `mesh` (default: all; see
+    `sharding.batch_mesh`).
     """
     init, evaluate_batch = get_fitness(cfg.kind).make(space, cfg)
-    evaluate_batch = shard_batch(evaluate_batch, mesh)
-
-    def fitness(keys, morphs, params):
-        out = evaluate_batch(keys, morphs, params)
-        return out.fitness, out.params
-
-    return (lambda key: jnp.zeros(())) if init is None else init, fitness
+    return (lambda key: jnp.zeros(())) if init is None else init, shard_batch(evaluate_batch, mesh)
 
 
 @functools.lru_cache(maxsize=16)

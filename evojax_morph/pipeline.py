@@ -80,9 +80,19 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     return Pipeline(space, fit_cfg, init_fn, fitness_fn, env, agent, greedy_env)
 
 
+class Greedy(NamedTuple):
+    """A greedy rollout from m0: horizon + 1 bodies, m0 first."""
+
+    morphs: list  # the bodies (`Morphology`, on the host)
+    fitness: list[float]  # their fitness
+    actions: list[str]  # the horizon mutations, named ("node 1: remove")
+    params: list  # the controller each body was evaluated with (trained, for the PPO fitness)
+
+
 def make_greedy_rollout(p: Pipeline):
-    """`rollout(learner, first, key)`: from m0 (as `first`, the evaluated start of env 0), the
-    agent's greedy mutations, with each body's fitness. Compiled once, reused across calls."""
+    """`rollout(learner, first, key) -> Greedy`: from m0 (as `first`, the evaluated start of
+    env 0), the agent's greedy mutations, with each body's fitness and controller. Compiled
+    once, reused across calls."""
     space, env1, scores = p.space, p.greedy_env, p.agent.scores
 
     @jax.jit
@@ -93,18 +103,26 @@ def make_greedy_rollout(p: Pipeline):
             obs = env1.observe(evo)
             action = masked_argmax(scores(learner, obs), obs.mask)
             _, evo, *_ = env1.step(key, evo, action)
-            return evo, (evo.morph, evo.fitness[0], action[0])
+            return evo, (evo.morph, evo.params, evo.fitness[0], action[0])
 
-        _, (morphs, fitness, actions) = jax.lax.scan(body, evo, jax.random.split(key, env1.horizon))
-        return morphs, fitness, actions
+        keys = jax.random.split(key, env1.horizon)
+        _, (morphs, params, fitness, actions) = jax.lax.scan(body, evo, keys)
+        return morphs, params, fitness, actions
 
-    def rollout(learner, first, key):
-        morphs, fitness, actions = to_host(run(learner, first, key))
-        first_morph, first_fitness = to_host((first.morph, first.fitness))
-        m0 = jax.tree.map(lambda x: x[0], first_morph)
-        seq = [m0] + [jax.tree.map(lambda x, i=i: x[i, 0], morphs) for i in range(env1.horizon)]
+    def rollout(learner, first, key) -> Greedy:
+        morphs, params, fitness, actions = to_host(run(learner, first, key))
+        first_morph, first_params, first_fitness = to_host((first.morph, first.params,
+                                                            first.fitness))
+        at = lambda tree, i: jax.tree.map(lambda x: x[i, 0], tree)  # noqa: E731
+        m0, p0 = jax.tree.map(lambda x: x[0], (first_morph, first_params))
+        steps = range(env1.horizon)
         nm = space.num_mutations
         names = [f"node {a // nm}: {space.mutation_names[a % nm]}" for a in actions]
-        return seq, [float(first_fitness[0])] + [float(f) for f in fitness], names
+        return Greedy(
+            morphs=[m0] + [at(morphs, i) for i in steps],
+            fitness=[float(first_fitness[0])] + [float(f) for f in fitness],
+            actions=names,
+            params=[p0] + [at(params, i) for i in steps],
+        )
 
     return rollout

@@ -121,11 +121,8 @@ def masked_entropy(dist: distribution.NormalTanhDistribution, logits, key, mask)
     return jnp.sum(jnp.where(mask, per_dim, 0.0), axis=-1)
 
 
-def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig = PPOConfig()):
-    """Returns `(init, train)` for the space's locomotion task; see the module docstring."""
-    cfg.validate()
-    env = Locomotion(space, task_cfg)
-    networks = ppo_networks.make_ppo_networks(
+def _networks(env: Locomotion, cfg: PPOConfig):
+    return ppo_networks.make_ppo_networks(
         env.obs_size,
         env.action_size,
         preprocess_observations_fn=running_statistics.normalize
@@ -134,11 +131,59 @@ def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig
         policy_hidden_layer_sizes=cfg.policy_hidden,
         value_hidden_layer_sizes=cfg.value_hidden,
     )
+
+
+def make_policy(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig = PPOConfig()):
+    """`policy(params, obs) -> action`: the deterministic actions (..., A) of one controller
+    (no leading K axis) for (..., obs_size) observations, as the evaluation episodes act."""
+    networks = _networks(Locomotion(space, task_cfg), cfg)
+
+    def policy(params: Params, obs: jax.Array) -> jax.Array:
+        logits = networks.policy_network.apply(params.normalizer, params.policy, obs)
+        return networks.parametric_action_distribution.mode(logits)
+
+    return policy
+
+
+def make_evaluate(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig = PPOConfig()):
+    """`evaluate(key, model, params) -> (returns, diverged)`, both (eval_episodes,): one
+    controller's deterministic policy (`make_policy`) for `eval_episodes` episodes from resets
+    with the keys `split(key, eval_episodes)`, as the fitness scores a trained controller."""
+    env = Locomotion(space, task_cfg)
+    policy = make_policy(space, task_cfg, cfg)
+
+    def evaluate(key, model, params: Params):
+        state = jax.vmap(env.reset, (0, None))(jax.random.split(key, cfg.eval_episodes), model)
+        step = jax.vmap(env.step, (None, 0, 0))
+
+        def body(carry, _):
+            state, returns, alive, diverged = carry
+            state = step(model, state, policy(params, state.obs))
+            returns = returns + jnp.where(alive, state.reward, 0.0)
+            diverged = diverged | (alive & state.diverged)
+            return (state, returns, alive & ~state.done, diverged), None
+
+        zeros = jnp.zeros(cfg.eval_episodes, state.reward.dtype)
+        alive = jnp.ones(cfg.eval_episodes, bool)
+        (_, returns, _, diverged), _ = jax.lax.scan(
+            body, (state, zeros, alive, ~alive), length=task_cfg.episode_length
+        )
+        return returns, diverged
+
+    return evaluate
+
+
+def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig = PPOConfig()):
+    """Returns `(init, train)` for the space's locomotion task; see the module docstring."""
+    cfg.validate()
+    env = Locomotion(space, task_cfg)
+    networks = _networks(env, cfg)
     dist = networks.parametric_action_distribution
     policy_apply = networks.policy_network.apply
     value_apply = networks.value_network.apply
     optimizer = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate))
     num_envs, horizon = cfg.num_envs, cfg.unroll_length
+    evaluate = make_evaluate(space, task_cfg, cfg)
     minibatch = num_envs * horizon // cfg.num_minibatches
 
     def init(key: jax.Array) -> Params:
@@ -293,26 +338,6 @@ def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig
             train_return=last("return"),
             entropy=last("entropy"),
         )
-
-    def evaluate(key, model, params: Params):
-        """(eval_episodes,) returns of the deterministic policy, and whether each diverged."""
-        state = jax.vmap(env.reset, (0, None))(jax.random.split(key, cfg.eval_episodes), model)
-        step = jax.vmap(env.step, (None, 0, 0))
-
-        def body(carry, _):
-            state, returns, alive, diverged = carry
-            logits = policy_apply(params.normalizer, params.policy, state.obs)
-            state = step(model, state, dist.mode(logits))
-            returns = returns + jnp.where(alive, state.reward, 0.0)
-            diverged = diverged | (alive & state.diverged)
-            return (state, returns, alive & ~state.done, diverged), None
-
-        zeros = jnp.zeros(cfg.eval_episodes, state.reward.dtype)
-        alive = jnp.ones(cfg.eval_episodes, bool)
-        (_, returns, _, diverged), _ = jax.lax.scan(
-            body, (state, zeros, alive, ~alive), length=task_cfg.episode_length
-        )
-        return returns, diverged
 
     return init, train
 

@@ -66,7 +66,7 @@ def main():
     greedy = []
     for s in range(args.seeds):
         take = lambda x, s=s: x[s]  # noqa: E731
-        seq, fitness, names = rollout(
+        seq, fitness, names, _ = rollout(
             jax.tree.map(take, res["states"].learner),
             jax.tree.map(take, res["states"].first),
             jax.random.PRNGKey(s),

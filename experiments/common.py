@@ -78,7 +78,7 @@ def run_agent(agent: str, setup: Setup, seeds: int) -> dict:
         start = time.perf_counter()
         states, m = jax.block_until_ready(step_fns[n](states))
         walls += [(time.perf_counter() - start) / n] * n
-        metrics.append(jax.device_get(m))
+        metrics.append({k: v for k, v in jax.device_get(m).items() if k != "bodies"})
         done += n
     # metrics come as (seeds, n, ...): put steps first
     cat = {k: np.concatenate([np.swapaxes(m[k], 0, 1) for m in metrics]) for k in metrics[0]}

@@ -77,7 +77,7 @@ def main():
             state, metrics = jax.block_until_ready(chunk(state, args.chunk))
             if seed or c:  # the first call compiles
                 step_times.append((time.perf_counter() - t) / args.chunk)
-        morphs, fitness, actions = greedy(state.learner, state.first, jax.random.PRNGKey(99))
+        morphs, fitness, actions, _ = greedy(state.learner, state.first, jax.random.PRNGKey(99))
         finals.append(morphs[-1])
         print(
             json.dumps(

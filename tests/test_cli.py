@@ -1,11 +1,15 @@
-"""The run command: bad input and resume (its PPO smoke run is in test_sharding, on 4 devices)."""
+"""The run command: bad input, resume and the body log (its PPO smoke run is in test_sharding,
+on 4 devices)."""
 
+import csv
 import json
+import sqlite3
 
 import jax
 import numpy as np
 import pytest
 
+import evojax_morph as em
 from evojax_morph import run
 
 TINY = [
@@ -70,3 +74,44 @@ def test_resume_matches_an_uninterrupted_run(tmp_path):
     ]
     for x, y in zip(jax.tree.leaves(restore(straight)), jax.tree.leaves(restore(split))):
         np.testing.assert_array_equal(x, y)
+
+
+def log_rows(run_dir):
+    db = sqlite3.connect(run_dir / "bodies.sqlite")
+    try:
+        return db.execute("SELECT * FROM bodies ORDER BY step, evolution").fetchall()
+    finally:
+        db.close()
+
+
+def test_body_log_of_a_resumed_run(tmp_path):
+    """Every body evaluated, once per evaluation, with its parent; the resume drops the steps it
+    redoes, so the log equals an uninterrupted run's."""
+    straight, split = tmp_path / "straight", tmp_path / "split"
+    assert run.main(TINY + ["--steps", "9", "--seed", "5", "--out", str(straight)]) == 0
+    assert run.main(TINY + ["--steps", "6", "--seed", "5", "--out", str(split)]) == 0
+    assert run.main(TINY + ["--steps", "9", "--out", str(split), "--resume"]) == 0
+    rows = log_rows(straight)
+    assert rows == log_rows(split)
+    assert len(rows) == 4 * 10  # m0 in 4 evolutions, then 4 children a step
+    space = em.make_space("bad_walker")
+    m0 = space.canonical(space.initial())
+    at = {(r[0], r[1]): r for r in rows}
+    horizon = space.default_horizon
+    for (step, evolution), (_, _, body, _, std, diverged, parent) in at.items():
+        assert std == 0.0 and diverged == 0  # the predefined fitness
+        if step == 0:
+            assert body == m0 and parent is None
+        else:  # mutated from the evolution's previous body, or from m0 after a restart
+            previous = m0 if (step - 1) % horizon == 0 else at[(step - 1, evolution)][2]
+            assert parent == previous, (step, evolution)
+    with open(straight / "metrics.csv") as f:
+        for r in csv.DictReader(f):
+            logged = [at[(int(r["step"]), e)][3] for e in range(4)]
+            assert np.mean(logged) == pytest.approx(float(r["fitness_mean"]), abs=1e-6)
+    summary = json.loads((straight / "summary.json").read_text())
+    best = em.best_bodies(straight / "bodies.sqlite", 3)
+    assert summary["best_bodies"][:3] == best
+    assert best[0]["best_fitness"] == pytest.approx(summary["best_fitness"])
+    assert sum(b["evaluations"] for b in em.best_bodies(straight / "bodies.sqlite", 99)) == 40
+    assert summary["controllers"] == [] and not (straight / "best.gif").exists()

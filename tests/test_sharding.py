@@ -6,6 +6,7 @@ XLA_FLAGS=--xla_force_host_platform_device_count=4; this process has one CPU dev
 
 import json
 import os
+import sqlite3
 import subprocess
 import sys
 
@@ -98,3 +99,10 @@ def test_four_devices_give_one_devices_fitness_and_checkpoints_move(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["env_steps"] == 3 and np.isfinite(summary["best_fitness"])
     assert len(summary["greedy_trajectory"]) == 6  # m0 and Bad Walker's 5 mutations
+    # the trained controllers of the best body and the greedy trajectory's, and the best walking
+    saved = sorted(d.name for d in (out / "controllers").iterdir())
+    assert saved == ["best"] + [f"step{t}" for t in range(6)] == summary["controllers"]
+    assert (out / "best.gif").stat().st_size > 0
+    db = sqlite3.connect(out / "bodies.sqlite")
+    assert db.execute("SELECT COUNT(*), MAX(step) FROM bodies").fetchone() == (6 * 4, 3)
+    db.close()

@@ -3,8 +3,9 @@
 `make_agent(name, env)` returns an `Agent(init, chunk, scores)`: init(key) -> `AgentState`;
 chunk(state, n) runs n environment steps (each evaluates env.num_envs children) in one jitted
 scan and stacks per-step metrics ("reward" and "fitness" of shape (n, N), "best_fitness" (n,),
-and the agent's own, e.g. "epsilon", "entropy", "loss"); scores(learner, obs) -> (N, A) scores
-whose masked argmax is the greedy action, or None for the baselines, which learn nothing.
+"bodies": the children evaluated and their parents, for the body log; and the agent's own,
+e.g. "epsilon", "entropy", "loss"); scores(learner, obs) -> (N, A) scores whose masked argmax
+is the greedy action, or None for the baselines, which learn nothing.
 
 To add an agent: a module of this package with its config dataclass (defaults, and `for_run`:
 what a run's `RunOptions` make of it) and `make_policy(env, cfg) -> Policy` (how it acts and

@@ -30,6 +30,7 @@ class AgentState:
     step: jax.Array  # () int32: env steps done
     best_fitness: jax.Array  # (): best fitness seen in any env
     best_morph: Morphology  # the body that had it
+    best_params: Any  # the controller it was evaluated with (trained, for the PPO fitness)
 
 
 class RunOptions(NamedTuple):
@@ -51,6 +52,12 @@ class Transition(NamedTuple):
     next_obs: Observation  # (N, ...) after the step, before ended episodes restart
     terminated: jax.Array  # (N,) bool
     done: jax.Array  # (N,) bool: terminated or truncated
+
+
+def bodies(parents: EvoState, children: EvoState) -> dict:
+    """What the body log keeps of one step: every child evaluated, with its parent."""
+    return {"parent": parents.morph, "morph": children.morph, "fitness": children.fitness,
+            "fitness_std": children.fitness_std, "diverged": children.diverged}
 
 
 def _restart(env: EvolutionEnv, parents: EvoState, children: EvoState, first: EvoState, done):
@@ -82,7 +89,8 @@ class Policy(NamedTuple):
 
 class Agent(NamedTuple):
     """init(key) -> AgentState; chunk(state, num_steps) -> (state, metrics stacked over steps):
-    "reward" and "fitness" (num_steps, N), "best_fitness" (num_steps,) and the agent's own;
+    "reward" and "fitness" (num_steps, N), "best_fitness" (num_steps,), "bodies" (every child
+    evaluated and its parent, see `bodies`) and the agent's own;
     scores(learner, obs) -> (N, num_actions) or None (see `Policy`)."""
 
     init: Callable
@@ -98,10 +106,9 @@ def from_policy(env: EvolutionEnv, policy: Policy, mesh=None) -> Agent:
     def init(key: jax.Array) -> AgentState:
         keys = jax.random.split(key, n_init + 2)
         obs, evo = env.reset(keys[n_init])
-        best_fitness, best_morph = track_best(evo)
         learner = policy.init(keys[:n_init], obs)
         return AgentState(learner, evo, evo, keys[n_init + 1], jnp.zeros((), jnp.int32),
-                          best_fitness, best_morph)
+                          *track_best(evo))
 
     def env_step(state: AgentState, _):
         keys = jax.random.split(state.key, n_act + n_learn + 2)
@@ -113,17 +120,16 @@ def from_policy(env: EvolutionEnv, policy: Policy, mesh=None) -> Agent:
 
         # MUTATE AND EVALUATE THE CHILDREN (one batched fitness call)
         next_obs, children, reward, terminated, truncated, _ = env.step(key_env, state.evo, action)
-        best_fitness, best_morph = track_best(children, state.best_fitness, state.best_morph)
+        best = track_best(children, (state.best_fitness, state.best_morph, state.best_params))
         done = terminated | truncated
         evo = policy.next_evo(env, state.evo, children, state.first, done)
 
         # LEARN
         transition = Transition(obs, action, reward, next_obs, terminated, done)
         learner, learn_metrics = policy.learn(state.learner, key_learn, transition, state.step)
-        new = AgentState(
-            learner, evo, state.first, keys[0], state.step + 1, best_fitness, best_morph
-        )
-        metrics = {"reward": reward, "fitness": children.fitness, "best_fitness": best_fitness}
+        new = AgentState(learner, evo, state.first, keys[0], state.step + 1, *best)
+        metrics = {"reward": reward, "fitness": children.fitness, "best_fitness": best[0]}
+        metrics["bodies"] = bodies(state.evo, children)
         return new, {**metrics, **act_metrics, **learn_metrics}
 
     def chunk(state: AgentState, num_steps: int):

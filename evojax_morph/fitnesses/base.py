@@ -36,6 +36,16 @@ class FitnessConfig:
     def __post_init__(self):
         get_fitness(self.kind).validate(self)
 
+    def to_dict(self) -> dict:
+        """JSON-ready settings; `from_dict` rebuilds the same config."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> FitnessConfig:
+        tuples = lambda c: {k: tuple(v) if isinstance(v, list) else v for k, v in c.items()}
+        return cls(kind=d["kind"], task=TaskConfig(**d["task"]), ppo=PPOConfig(**tuples(d["ppo"])),
+                   classifier=d["classifier"])
+
 
 @struct.dataclass
 class FitnessResult:

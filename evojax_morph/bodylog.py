@@ -1,0 +1,82 @@
+"""A log of every body a run evaluates: one SQLite table, written as the run goes.
+
+Table `bodies`, one row per evaluation: step (0: m0 as the run's reset evaluated it), evolution
+(which of the N parallel evolutions), body (its canonical name, `Space.canonical`: equal for
+equal shapes), fitness, fitness_std (over the K controllers, or the evaluation episodes),
+diverged, parent (the canonical name of the body it was mutated from; NULL at step 0). With
+controller inheritance a body's fitness depends on its lineage, so this is a log, not a cache:
+the same body appears once per evaluation.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+
+from evojax_morph.morphology import Morphology
+from evojax_morph.spaces import Space
+
+SCHEMA = """CREATE TABLE IF NOT EXISTS bodies (
+  step INTEGER NOT NULL, evolution INTEGER NOT NULL, body TEXT NOT NULL, fitness REAL NOT NULL,
+  fitness_std REAL NOT NULL, diverged INTEGER NOT NULL, parent TEXT
+)"""
+
+
+class BodyLog:
+    """The log of one run in the SQLite file `path` (created if missing)."""
+
+    def __init__(self, path: Path, space: Space):
+        self.space = space
+        self.db = sqlite3.connect(str(path))
+        self.db.execute(SCHEMA)
+        self.db.execute("CREATE INDEX IF NOT EXISTS by_body ON bodies (body)")
+        self.db.commit()
+        self._names: dict[bytes, str] = {}
+
+    def name(self, m: Morphology) -> str:
+        """The canonical name of one host-side body, computed once per distinct array."""
+        raw = b"".join(np.ascontiguousarray(x).tobytes() for x in
+                       (m.active, m.parent, m.kind, m.site, m.attrs))
+        if raw not in self._names:
+            self._names[raw] = self.space.canonical(m)
+        return self._names[raw]
+
+    def add(self, step: int, morphs: Morphology, fitness, fitness_std, diverged,
+            parents: Morphology | None = None) -> None:
+        """One step's evaluations: host-side (N, ...) bodies and (N,) results."""
+        at = lambda tree, i: Morphology(*(np.asarray(x)[i] for x in (  # noqa: E731
+            tree.active, tree.parent, tree.kind, tree.site, tree.attrs)))
+        rows = [
+            (step, i, self.name(at(morphs, i)), float(fitness[i]), float(fitness_std[i]),
+             int(bool(diverged[i])), None if parents is None else self.name(at(parents, i)))
+            for i in range(len(fitness))
+        ]
+        self.db.executemany("INSERT INTO bodies VALUES (?, ?, ?, ?, ?, ?, ?)", rows)
+
+    def commit(self) -> None:
+        self.db.commit()
+
+    def truncate(self, after_step: int) -> None:
+        """Forgets the steps after `after_step` (a resumed run redoes them)."""
+        self.db.execute("DELETE FROM bodies WHERE step > ?", (after_step,))
+        self.db.commit()
+
+    def close(self) -> None:
+        self.db.close()
+
+
+def best_bodies(path: Path, n: int = 10) -> list[dict]:
+    """The `n` best distinct bodies of a log, by their best fitness: each with how often it was
+    evaluated, its best and mean fitness, and the step it was first seen."""
+    db = sqlite3.connect(str(path))
+    try:
+        rows = db.execute(
+            "SELECT body, COUNT(*), MAX(fitness), AVG(fitness), MIN(step) FROM bodies "
+            "GROUP BY body ORDER BY MAX(fitness) DESC, MIN(step) LIMIT ?", (n,)
+        ).fetchall()
+    finally:
+        db.close()
+    keys = ("body", "evaluations", "best_fitness", "mean_fitness", "first_step")
+    return [dict(zip(keys, r)) for r in rows]
