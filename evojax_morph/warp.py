@@ -86,9 +86,8 @@ def to_warp(
         leading (B,) axis.
       envs: E, worlds per body; world `w = b * E + e` is env e of body b.
       naconmax_per_world: contacts allocated per world (Warp's pool holds N times this);
-        default 2 per geom, the most a capsule on the floor has (only geom-floor pairs collide).
-      njmax: constraint rows per world; default 4 per contact (pyramidal cone, condim 3) plus
-        one per joint (limits).
+        None for `make_worlds`'s default.
+      njmax: constraint rows per world; None for `make_worlds`'s default.
       graph_mode: a `warp.JaxCallableGraphMode`; None is MJX's default (WARP on a GPU, JAX on
         the CPU).
 
@@ -100,28 +99,46 @@ def to_warp(
     Raises:
       RuntimeError: when MJX's Warp implementation cannot run here (the reason is given).
     """
-    _require()
     template = space.template
-    batch = models.body_mass.shape[0]
-    worlds = batch * envs
-    if naconmax_per_world is None:
-        naconmax_per_world = 2 * template.ngeom
-    if njmax is None:
-        njmax = 4 * naconmax_per_world + template.njnt
-
-    base = mjx.put_model(template, impl="warp", graph_mode=graph_mode)
-    # Warp prints a warning for each step whose solver hits its iteration budget: ours is small
-    # on purpose (BodyPlan.iterations), so these would flood the output.
-    base = base.replace(opt=base.opt.replace(_impl=base.opt._impl.replace(warn_overflow=0)))
+    worlds = models.body_mass.shape[0] * envs
+    base = put_model(template, graph_mode)
     per_world = lambda x: jnp.repeat(jnp.asarray(x, jnp.float32), envs, axis=0)
     fields = {n: per_world(getattr(models, n)) for n in SPECIALISED_FIELDS if n not in _NOT_IN_WARP}
     fields["geom_aabb"] = _capsule_aabb(template, fields["geom_size"])
     model = base.replace(**fields)
 
-    data = mjx.make_data(template, impl="warp", naconmax=naconmax_per_world * worlds, njmax=njmax)
+    return model, make_worlds(template, worlds, naconmax_per_world, njmax)
+
+
+def put_model(mj_model: mujoco.MjModel, graph_mode=None) -> mjx.Model:
+    """`mj_model` as one Warp-impl model shared by every world (no per-world fields)."""
+    _require()
+    model = mjx.put_model(mj_model, impl="warp", graph_mode=graph_mode)
+    # Warp prints a warning for each step whose solver hits its iteration budget: ours is small
+    # on purpose (BodyPlan.iterations), so these would flood the output.
+    return model.replace(opt=model.opt.replace(_impl=model.opt._impl.replace(warn_overflow=0)))
+
+
+def make_worlds(
+    mj_model: mujoco.MjModel,
+    worlds: int,
+    naconmax_per_world: int | None = None,
+    njmax: int | None = None,
+) -> mjx.Data:
+    """Warp-impl data of `mj_model` at qpos0 for `worlds` worlds (contact pool shared).
+
+    Defaults: 2 contacts per geom and world, the most a capsule on the floor has (only
+    geom-floor pairs collide); 4 constraint rows per contact (pyramidal cone, condim 3) plus
+    one per joint (limits).
+    """
+    _require()
+    if naconmax_per_world is None:
+        naconmax_per_world = 2 * mj_model.ngeom
+    if njmax is None:
+        njmax = 4 * naconmax_per_world + mj_model.njnt
+    data = mjx.make_data(mj_model, impl="warp", naconmax=naconmax_per_world * worlds, njmax=njmax)
     # Data's own vmap rule batches the per-world fields and keeps the contact pool shared.
-    data = jax.vmap(lambda _: data)(jnp.arange(worlds))
-    return model, data
+    return jax.vmap(lambda _: data)(jnp.arange(worlds))
 
 
 def step_worlds(model: mjx.Model, data: mjx.Data, ctrl: jax.Array) -> mjx.Data:
