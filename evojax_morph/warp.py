@@ -99,6 +99,7 @@ def to_warp(
     Raises:
       RuntimeError: when MJX's Warp implementation cannot run here (the reason is given).
     """
+    _require()
     template = space.template
     worlds = models.body_mass.shape[0] * envs
     base = put_model(template, graph_mode)

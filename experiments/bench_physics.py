@@ -123,6 +123,8 @@ def bench_space(
     repeats: int,
     seed: int,
     graph_mode=None,
+    naconmax: int | None = None,
+    njmax: int | None = None,
 ) -> list[dict]:
     """One row per physics kind of `physics_kinds` ("jax", "warp") for the space `spec`."""
     space = make_space(spec)
@@ -156,20 +158,22 @@ def bench_space(
         else:
             rollout = make_warp_rollout(steps, float(tmpl.opt.timestep))
             unpadded = ew.put_model(unpadded_mj, graph_mode)
-            unpadded_data = ew.make_worlds(unpadded_mj, worlds)
+            unpadded_data = ew.make_worlds(unpadded_mj, worlds, naconmax, njmax)
             t_unpadded = time_rollout(rollout, unpadded, unpadded_data, repeats)
             # The body m specialised, its fields shared by every world (a leading axis of 1).
             one = jax.tree.map(lambda x: x[None], jax.jit(space.mjx_model)(m))
             padded, _ = ew.to_warp(space, one, 1, graph_mode=graph_mode)
-            t_padded = time_rollout(rollout, padded, ew.make_worlds(tmpl, worlds), repeats)
+            padded_data = ew.make_worlds(tmpl, worlds, naconmax, njmax)
+            t_padded = time_rollout(rollout, padded, padded_data, repeats)
             t_nested = None  # a nested vmap is wrong under Warp (see evojax_morph.warp)
-            flat, flat_data = ew.to_warp(space, models, envs, graph_mode=graph_mode)
+            flat, flat_data = ew.to_warp(space, models, envs, naconmax, njmax, graph_mode)
             t_flat = time_rollout(rollout, flat, flat_data, repeats)
         rows.append(
             {
                 "space": spec,
                 "physics": kind,
                 "graph_mode": str(graph_mode) if kind == "warp" else None,
+                "naconmax_per_world": naconmax if kind == "warp" else None,
                 "template": f"nbody {tmpl.nbody}, nv {tmpl.nv}, ngeom {tmpl.ngeom}",
                 "device": jax.devices()[0].device_kind,
                 "batch": batch,
@@ -208,6 +212,15 @@ def main():
         default=None,
         help="Warp's CUDA graph mode (warp.JaxCallableGraphMode); default MJX's (WARP on a GPU)",
     )
+    parser.add_argument(
+        "--naconmax", type=int, default=None, help="Warp contacts per world (default 2 per geom)"
+    )
+    parser.add_argument(
+        "--njmax",
+        type=int,
+        default=None,
+        help="Warp constraint rows per world (default 4 per contact + joints)",
+    )
     args = parser.parse_args()
     jax.config.update("jax_default_matmul_precision", "highest")
     kinds = ["jax", "warp"] if args.physics == "both" else [args.physics]
@@ -225,7 +238,16 @@ def main():
     rows = []
     for spec in args.spaces:
         for row in bench_space(
-            spec, kinds, args.batch, args.envs, args.steps, args.repeats, args.seed, graph_mode
+            spec,
+            kinds,
+            args.batch,
+            args.envs,
+            args.steps,
+            args.repeats,
+            args.seed,
+            graph_mode,
+            args.naconmax,
+            args.njmax,
         ):
             print(json.dumps(row), flush=True)
             rows.append(row)

@@ -6,6 +6,7 @@ through MJX's Warp implementation, at 3 bodies x 2 envs per space.
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 import pytest
 
@@ -23,10 +24,13 @@ requires_warp = pytest.mark.skipif(not WARP_OK, reason=f"MuJoCo Warp: {WARP_REAS
 WARP_TOL = 3e-6
 
 
-def _bodies(space):
+def _morphs(space):
     keys = jax.random.split(jax.random.PRNGKey(0), BODIES)
-    morphs = jax.vmap(space.random_morphology, (0, None))(keys, space.default_horizon)
-    models = jax.jit(jax.vmap(space.mjx_model))(morphs)
+    return jax.vmap(space.random_morphology, (0, None))(keys, space.default_horizon)
+
+
+def _bodies(space):
+    models = jax.jit(jax.vmap(space.mjx_model))(_morphs(space))
     # Random walks may meet: make sure the bodies differ, or the isolation check proves nothing.
     shape = np.concatenate([models.body_mass, models.body_pos.reshape(BODIES, -1)], 1)
     assert all(not np.allclose(shape[i], shape[i - 1]) for i in range(BODIES)), shape
@@ -64,6 +68,18 @@ def test_specialise_writes_only_the_listed_fields(space):
     }
     listed = {f".{name}" for name in physics.SPECIALISED_FIELDS} | {".stat.meaninertia"}
     assert changed <= listed, changed - listed
+
+
+def test_capsule_boxes_match_mujocos(space):
+    """The broadphase boxes `to_warp` writes are those MuJoCo compiles for the unpadded body."""
+    m = jax.tree.map(lambda x: x[0], _morphs(space))
+    export = mujoco.MjModel.from_xml_string(space.to_mjcf(m))
+    sizes = jax.jit(space.mjx_model)(m).geom_size
+    boxes = np.asarray(ew._capsule_aabb(space.template, sizes))
+    for g in range(export.ngeom):
+        name = export.geom(g).name
+        expected = export.geom_aabb[g].reshape(2, 3)
+        np.testing.assert_allclose(boxes[space.template.geom(name).id], expected, atol=1e-6)
 
 
 def test_flat_jax_batch_equals_nested(space):
