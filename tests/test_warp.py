@@ -4,11 +4,14 @@ The Warp tests are skipped where MuJoCo Warp is not installed (CI); here they ru
 through MJX's Warp implementation, at 3 bodies x 2 envs per space.
 """
 
+import re
+
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from mujoco.mjx import warp as mjx_warp
 
 import evojax_morph as em
 from evojax_morph import physics
@@ -100,13 +103,18 @@ def test_flat_jax_batch_equals_nested(space):
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-6)
 
 
-def test_unavailable_warp_is_a_clear_error():
+def test_unavailable_warp_is_a_clear_error(monkeypatch):
     space = em.make_space("bad_walker")
-    with jax.enable_x64(True):
+    with jax.enable_x64(True):  # float64 on: Warp cannot run, whether installed or not
         ok, reason = ew.available()
-        assert not ok and "float32" in reason
-        with pytest.raises(RuntimeError, match="cannot run: .*float32"):
+        assert not ok and reason
+        with pytest.raises(RuntimeError, match="the Warp physics cannot run: " + re.escape(reason)):
             ew.to_warp(space, None, ENVS)
+    monkeypatch.setattr(mjx_warp, "WARP_INSTALLED", False)  # as in CI
+    ok, reason = ew.available()
+    assert not ok and "pip install 'evojax_morph[warp]'" in reason
+    with pytest.raises(RuntimeError, match="warp-lang is not installed"):
+        ew.put_model(space.template)
 
 
 @requires_warp
