@@ -336,6 +336,59 @@ def specialise(
     return _set_constants(model, index, limb_on)
 
 
+# Every Model field `specialise` writes (with `stat.meaninertia`); every other field of a
+# specialised model is the template's, whatever the body.
+SPECIALISED_FIELDS = (
+    "geom_pos",
+    "geom_quat",
+    "geom_size",
+    "geom_rbound",
+    "geom_rgba",
+    "geom_margin",
+    "body_pos",
+    "body_mass",
+    "body_subtreemass",
+    "body_ipos",
+    "body_iquat",
+    "body_inertia",
+    "body_invweight0",
+    "dof_armature",
+    "dof_invweight0",
+    "dof_M0",
+    "actuator_gear",
+    "actuator_acc0",
+)
+
+
+def flat_models(models: mjx.Model, envs: int) -> tuple[mjx.Model, mjx.Model]:
+    """B specialised models as one model per world of a flat batch of B x E worlds.
+
+    World `w = b * envs + e` is env e of body b. Only the fields `specialise` writes are
+    repeated per world; the rest are body 0's, shared. Step the flat batch with
+    `jax.vmap(mjx.step, (in_axes, 0))(model, data)`, data with a leading (B * E,) axis.
+
+    Args:
+      models: a batch of `specialise`d models (JAX impl), every leaf with a leading (B,) axis.
+      envs: E, worlds per body.
+
+    Returns:
+      `(model, in_axes)`: the model, fields of `SPECIALISED_FIELDS` and `stat.meaninertia`
+      with a leading (B * E,) axis and the rest unbatched, and the matching `in_axes` tree
+      (0 for the repeated leaves, None for the shared ones).
+    """
+    repeat = lambda x: jnp.repeat(x, envs, axis=0)
+    shared = jax.tree.map(lambda x: x[0], models)
+    flat = shared.replace(
+        **{name: repeat(getattr(models, name)) for name in SPECIALISED_FIELDS},
+        stat=shared.stat.replace(meaninertia=repeat(models.stat.meaninertia)),
+    )
+    axes = jax.tree.map(lambda _: None, shared)
+    axes = axes.replace(
+        **{name: 0 for name in SPECIALISED_FIELDS}, stat=axes.stat.replace(meaninertia=0)
+    )
+    return flat, axes
+
+
 def _set_constants(model: mjx.Model, index: TemplateIndex, limb_on: jax.Array) -> mjx.Model:
     """Constants MuJoCo computes at qpos0 (engine_setconst.c), from the model's own mass matrix."""
     data = mjx.make_data(model)

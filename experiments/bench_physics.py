@@ -1,15 +1,22 @@
 """Physics steps/s of the padded template under vmap, against the unpadded model of one body.
 
-For each space, at B morphologies x E envs (B*E worlds), this times:
-  unpadded   the exported MJCF of one morphology m, put on the device, shared by all B*E worlds;
-  padded     the template specialised to that same m, shared by all B*E worlds;
-  batched    the template specialised to B different random morphologies, E worlds each.
-`padded / unpadded` is the cost of padding itself; `batched` is how the fitness step uses it.
-Each figure steps every world `--steps` times inside one jitted `lax.scan`, after a warm-up
-call that compiles it, and takes the median of `--repeats` timed calls.
+For each space, at B morphologies x E envs (N = B*E worlds), and each physics asked for
+(`--physics jax|warp|both`), this times:
+  unpadded   the exported MJCF of one morphology m, put on the device, shared by all N worlds;
+  padded     the template specialised to that same m, shared by all N worlds;
+  nested     (JAX only) B different random morphologies, E worlds each: a vmap over bodies
+             around a vmap over envs, as the fitness steps them today;
+  flat       the same B bodies as one flat batch of N worlds, the fields `specialise` writes
+             repeated per world (`physics.flat_models`; for Warp `warp.to_warp`, whose
+             worlds all read their own copy of those fields).
+`padded / unpadded` is the cost of padding itself. Each figure steps every world `--steps`
+times inside one jitted `lax.scan`, after a warm-up call that compiles it, and takes the median
+of `--repeats` timed calls. Warp (MuJoCo Warp behind MJX, float32) runs on a CUDA GPU or, slowly,
+on the CPU; `--graph-mode` picks its CUDA graph capture (MJX's default: WARP on a GPU).
 
-  python -m experiments.bench_physics                       # CPU-sized defaults
-  python -m experiments.bench_physics --batch 1024 --envs 64  # the GPU target
+  python -m experiments.bench_physics                       # CPU-sized defaults, JAX
+  python -m experiments.bench_physics --batch 2 --envs 2 --steps 10 --physics both  # CPU smoke
+  python -m experiments.bench_physics --batch 1024 --envs 64 --physics both  # the GPU target
   python -m experiments.bench_physics --spaces constructor constructor:leg_depth=1,leg_edges=0
 """
 
@@ -25,16 +32,25 @@ import mujoco
 import numpy as np
 
 import evojax_morph as em
+from evojax_morph import physics
+from evojax_morph import warp as ew
 from evojax_morph.physics import mjx
 
 
+def controls(data, t, timestep):
+    """Sinusoidal controls of one world at step t; the phase differs per world after a step."""
+    phase = jnp.arange(data.ctrl.shape[-1]) + data.qpos[0]
+    return jnp.sin(8.0 * t * timestep + phase)
+
+
+def step_world(model, data, t):
+    return mjx.step(model, data.replace(ctrl=controls(data, t, model.opt.timestep)))
+
+
 def make_rollout(steps: int, batched_models: bool):
-    """jit(fn(models, data) -> data): `steps` physics steps of every world, sinusoidal controls."""
+    """jit(fn(models, data) -> data): `steps` physics steps of every world, sinusoidal controls.
 
-    def step_world(model, data, t):
-        phase = jnp.arange(data.ctrl.shape[-1]) + data.qpos[0]  # differs per world after a step
-        return mjx.step(model, data.replace(ctrl=jnp.sin(8.0 * t * model.opt.timestep + phase)))
-
+    Data has a leading (B, E) axis; models a leading (B,) axis if `batched_models`."""
     per_env = jax.vmap(step_world, (None, 0, None))  # E worlds of one model
     per_model = jax.vmap(per_env, (0 if batched_models else None, 0, None))
 
@@ -42,6 +58,34 @@ def make_rollout(steps: int, batched_models: bool):
     def rollout(models, data):
         def body(data, t):
             return per_model(models, data, t), None
+
+        return jax.lax.scan(body, data, jnp.arange(steps))[0]
+
+    return rollout
+
+
+def make_flat_rollout(steps: int, in_axes):
+    """jit(fn(model, data) -> data) over one flat batch: data (N,), model fields per `in_axes`."""
+    per_world = jax.vmap(step_world, (in_axes, 0, None))
+
+    @jax.jit
+    def rollout(model, data):
+        def body(data, t):
+            return per_world(model, data, t), None
+
+        return jax.lax.scan(body, data, jnp.arange(steps))[0]
+
+    return rollout
+
+
+def make_warp_rollout(steps: int, timestep: float):
+    """jit(fn(model, data) -> data): `steps` flat Warp steps of every world (`warp.step_worlds`)."""
+
+    @jax.jit
+    def rollout(model, data):
+        def body(data, t):
+            ctrl = jax.vmap(controls, (0, None, None))(data, t, timestep)
+            return ew.step_worlds(model, data, ctrl), None
 
         return jax.lax.scan(body, data, jnp.arange(steps))[0]
 
@@ -70,7 +114,19 @@ def make_space(spec: str):
     return em.make_space(name, **{k: int(v) for k, v in kwargs.items()})
 
 
-def bench_space(spec: str, batch: int, envs: int, steps: int, repeats: int, seed: int) -> dict:
+def bench_space(
+    spec: str,
+    physics_kinds: list[str],
+    batch: int,
+    envs: int,
+    steps: int,
+    repeats: int,
+    seed: int,
+    graph_mode=None,
+    naconmax: int | None = None,
+    njmax: int | None = None,
+) -> list[dict]:
+    """One row per physics kind of `physics_kinds` ("jax", "warp") for the space `spec`."""
     space = make_space(spec)
     name = space.name
     keys = jax.random.split(jax.random.PRNGKey(seed), batch)
@@ -78,33 +134,60 @@ def bench_space(spec: str, batch: int, envs: int, steps: int, repeats: int, seed
     morphs = jax.jit(jax.vmap(space.random_morphology, (0, None)), static_argnums=1)(keys, walk)
     m = space.optimum() if name == "bad_walker" else jax.tree.map(lambda x: x[0], morphs)
     worlds = batch * envs
-    shared = make_rollout(steps, batched_models=False)
-
-    unpadded = mjx.put_model(mujoco.MjModel.from_xml_string(space.to_mjcf(m)))
-    t_unpadded = time_rollout(shared, unpadded, broadcast_data(unpadded, batch, envs), repeats)
-
-    padded = jax.jit(space.mjx_model)(m)
-    t_padded = time_rollout(shared, padded, broadcast_data(padded, batch, envs), repeats)
-
+    unpadded_mj = mujoco.MjModel.from_xml_string(space.to_mjcf(m))
     models = jax.jit(jax.vmap(space.mjx_model))(morphs)
-    data = jax.vmap(lambda model: broadcast_data(model, 1, envs)[0])(models)
-    t_batched = time_rollout(make_rollout(steps, batched_models=True), models, data, repeats)
-
     tmpl = space.template
-    rate = lambda t: worlds * steps / t
-    return {
-        "space": spec,
-        "template": f"nbody {tmpl.nbody}, nv {tmpl.nv}, ngeom {tmpl.ngeom}",
-        "device": jax.devices()[0].device_kind,
-        "batch": batch,
-        "envs": envs,
-        "steps": steps,
-        "body": space.format(m).replace("\n", " | "),
-        "unpadded_sps": rate(t_unpadded),
-        "padded_sps": rate(t_padded),
-        "batched_sps": rate(t_batched),
-        "padding_cost": 1 - t_unpadded / t_padded,
-    }
+    rate = lambda t: None if t is None else worlds * steps / t
+    rows = []
+
+    for kind in physics_kinds:
+        if kind == "jax":
+            shared = make_rollout(steps, batched_models=False)
+            unpadded = mjx.put_model(unpadded_mj)
+            t_unpadded = time_rollout(
+                shared, unpadded, broadcast_data(unpadded, batch, envs), repeats
+            )
+            padded = jax.jit(space.mjx_model)(m)
+            t_padded = time_rollout(shared, padded, broadcast_data(padded, batch, envs), repeats)
+            data = jax.vmap(lambda model: broadcast_data(model, 1, envs)[0])(models)
+            nested = make_rollout(steps, batched_models=True)
+            t_nested = time_rollout(nested, models, data, repeats)
+            flat, axes = physics.flat_models(models, envs)
+            flat_data = broadcast_data(padded, 1, worlds)[0]
+            t_flat = time_rollout(make_flat_rollout(steps, axes), flat, flat_data, repeats)
+        else:
+            rollout = make_warp_rollout(steps, float(tmpl.opt.timestep))
+            unpadded = ew.put_model(unpadded_mj, graph_mode)
+            unpadded_data = ew.make_worlds(unpadded_mj, worlds, naconmax, njmax)
+            t_unpadded = time_rollout(rollout, unpadded, unpadded_data, repeats)
+            # The body m specialised, its fields shared by every world (a leading axis of 1).
+            one = jax.tree.map(lambda x: x[None], jax.jit(space.mjx_model)(m))
+            padded, _ = ew.to_warp(space, one, 1, graph_mode=graph_mode)
+            padded_data = ew.make_worlds(tmpl, worlds, naconmax, njmax)
+            t_padded = time_rollout(rollout, padded, padded_data, repeats)
+            t_nested = None  # a nested vmap is wrong under Warp (see evojax_morph.warp)
+            flat, flat_data = ew.to_warp(space, models, envs, naconmax, njmax, graph_mode)
+            t_flat = time_rollout(rollout, flat, flat_data, repeats)
+        rows.append(
+            {
+                "space": spec,
+                "physics": kind,
+                "graph_mode": str(graph_mode) if kind == "warp" else None,
+                "naconmax_per_world": naconmax if kind == "warp" else None,
+                "template": f"nbody {tmpl.nbody}, nv {tmpl.nv}, ngeom {tmpl.ngeom}",
+                "device": jax.devices()[0].device_kind,
+                "batch": batch,
+                "envs": envs,
+                "steps": steps,
+                "body": space.format(m).replace("\n", " | "),
+                "unpadded_sps": rate(t_unpadded),
+                "padded_sps": rate(t_padded),
+                "nested_sps": rate(t_nested),
+                "flat_sps": rate(t_flat),
+                "padding_cost": 1 - t_unpadded / t_padded,
+            }
+        )
+    return rows
 
 
 def main():
@@ -122,23 +205,62 @@ def main():
     parser.add_argument("--steps", type=int, default=100, help="physics steps per timed call")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--physics", choices=("jax", "warp", "both"), default="jax")
+    parser.add_argument(
+        "--graph-mode",
+        choices=("NONE", "JAX", "WARP", "WARP_STAGED", "WARP_STAGED_EX"),
+        default=None,
+        help="Warp's CUDA graph mode (warp.JaxCallableGraphMode); default MJX's (WARP on a GPU)",
+    )
+    parser.add_argument(
+        "--naconmax", type=int, default=None, help="Warp contacts per world (default 2 per geom)"
+    )
+    parser.add_argument(
+        "--njmax",
+        type=int,
+        default=None,
+        help="Warp constraint rows per world (default 4 per contact + joints)",
+    )
     args = parser.parse_args()
     jax.config.update("jax_default_matmul_precision", "highest")
+    kinds = ["jax", "warp"] if args.physics == "both" else [args.physics]
+    graph_mode = None
+    if "warp" in kinds:
+        ok, reason = ew.available()
+        if not ok:
+            raise SystemExit(f"--physics {args.physics}: the Warp physics cannot run: {reason}")
+        import warp
 
-    rows = [
-        bench_space(s, args.batch, args.envs, args.steps, args.repeats, args.seed)
-        for s in args.spaces
-    ]
-    for row in rows:
-        print(json.dumps(row))
+        warp.config.log_level = warp.LOG_WARNING  # no line per kernel module loaded
+        if args.graph_mode is not None:
+            graph_mode = getattr(warp.JaxCallableGraphMode, args.graph_mode)
+
+    rows = []
+    for spec in args.spaces:
+        for row in bench_space(
+            spec,
+            kinds,
+            args.batch,
+            args.envs,
+            args.steps,
+            args.repeats,
+            args.seed,
+            graph_mode,
+            args.naconmax,
+            args.njmax,
+        ):
+            print(json.dumps(row), flush=True)
+            rows.append(row)
     print(
-        f"\n{'space':<34} {'B x E':>12} {'unpadded/s':>12} {'padded/s':>12} {'batched/s':>12} "
-        f"{'padding':>8}"
+        f"\n{'space':<34} {'physics':<7} {'B x E':>12} {'unpadded/s':>12} {'padded/s':>12} "
+        f"{'nested/s':>12} {'flat/s':>12} {'padding':>8}"
     )
     for r in rows:
+        sps = [r[k] for k in ("unpadded_sps", "padded_sps", "nested_sps", "flat_sps")]
+        sps = " ".join(f"{'-':>12}" if x is None else f"{x:>12.4g}" for x in sps)
         print(
-            f"{r['space']:<34} {r['batch']:>5} x {r['envs']:<4} {r['unpadded_sps']:>12.4g} "
-            f"{r['padded_sps']:>12.4g} {r['batched_sps']:>12.4g} {r['padding_cost']:>7.0%}"
+            f"{r['space']:<34} {r['physics']:<7} {r['batch']:>5} x {r['envs']:<4} {sps} "
+            f"{r['padding_cost']:>7.0%}"
         )
 
 

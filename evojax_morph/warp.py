@@ -1,0 +1,156 @@
+"""MuJoCo Warp behind MJX: a flat batch of B bodies x E envs as one Warp model.
+
+MJX's Warp implementation (`mjx.put_model(..., impl="warp")`) steps `nworld` worlds in one
+kernel launch per stage. A model field may vary per world: Warp reads a field with a leading
+axis of size n as `field[world % n]`, for the fields MuJoCo Warp allows to vary (`_BATCH_DIM`).
+So every field `specialise` writes is repeated E times per body, world `w = b * E + e` being env
+e of body b, and the worlds step under ONE `jax.vmap(mjx.step, (None, 0))`. A vmap over bodies
+nested around a vmap over envs would be wrong, not slow: Warp sees the B x E worlds flattened
+while the model keeps its (B,) axis, so world `b * E + e` would read body `(b * E + e) % B`.
+
+Float32 only. The derived constants are computed by `specialise` in the JAX impl and copied;
+`dof_M0` and `stat.meaninertia` are not read by Warp. `geom_aabb` (the broadphase's boxes) is
+recomputed from the capsule sizes.
+
+  from evojax_morph import warp
+  ok, reason = warp.available()
+  model, data = warp.to_warp(space, jax.vmap(space.mjx_model)(morphs), envs=8)
+  data = warp.step_worlds(model, data, ctrl)   # ctrl: (B * E, nu)
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import mujoco
+
+from evojax_morph.physics import SPECIALISED_FIELDS, mjx
+from evojax_morph.spaces import Space
+
+INSTALL_HINT = "pip install 'evojax_morph[warp]'"
+# Fields `specialise` writes that Warp does not read.
+_NOT_IN_WARP = ("dof_M0",)
+
+
+def available() -> tuple[bool, str]:
+    """`(True, "")` when MJX's Warp implementation can run here, else `(False, why not)`."""
+    try:
+        from mujoco.mjx import warp as mjx_warp
+    except ImportError as e:  # an MJX too old to have the Warp implementation
+        return False, f"mujoco.mjx.warp does not import ({e}); {INSTALL_HINT}"
+    if not mjx_warp.WARP_INSTALLED:
+        return False, f"warp-lang is not installed; {INSTALL_HINT}"
+    if mjx_warp.mujoco_warp is None:
+        return False, f"MuJoCo Warp (mujoco-warp) does not import; {INSTALL_HINT}"
+    if jax.config.jax_enable_x64:
+        return False, "MuJoCo Warp runs in float32 only; jax_enable_x64 is on"
+    platform = jax.devices()[0].platform
+    if platform not in ("gpu", "cpu"):
+        return False, f"MuJoCo Warp runs on a CUDA GPU or the CPU, not on {platform}"
+    return True, ""
+
+
+def _require() -> None:
+    ok, reason = available()
+    if not ok:
+        raise RuntimeError(f"the Warp physics cannot run: {reason}")
+
+
+def _capsule_aabb(template: mujoco.MjModel, geom_size: jax.Array) -> jax.Array:
+    """(..., ngeom, 2, 3) geom_aabb (centre, half sizes in the geom frame) for `geom_size`.
+
+    A capsule's box is centred with half sizes (r, r, r + half length); every other geom keeps
+    the template's box.
+    """
+    aabb = jnp.asarray(template.geom_aabb.reshape(-1, 2, 3), jnp.float32)
+    aabb = jnp.broadcast_to(aabb, geom_size.shape[:-2] + aabb.shape)
+    r, half = geom_size[..., 0], geom_size[..., 1]
+    capsule = jnp.stack([jnp.zeros_like(r)] * 3 + [r, r, r + half], -1).reshape(aabb.shape)
+    is_capsule = template.geom_type == mujoco.mjtGeom.mjGEOM_CAPSULE
+    return jnp.where(is_capsule[:, None, None], capsule, aabb)
+
+
+def to_warp(
+    space: Space,
+    models: mjx.Model,
+    envs: int,
+    naconmax_per_world: int | None = None,
+    njmax: int | None = None,
+    graph_mode=None,
+) -> tuple[mjx.Model, mjx.Data]:
+    """A Warp model and initial data of N = B x E worlds for B specialised bodies.
+
+    Args:
+      space: the space whose padded template (`space.template`) the bodies specialise.
+      models: B bodies from `space.mjx_model` (JAX impl, float32 or float64), every leaf with a
+        leading (B,) axis.
+      envs: E, worlds per body; world `w = b * E + e` is env e of body b.
+      naconmax_per_world: contacts allocated per world (Warp's pool holds N times this);
+        None for `make_worlds`'s default.
+      njmax: constraint rows per world; None for `make_worlds`'s default.
+      graph_mode: a `warp.JaxCallableGraphMode`; None is MJX's default (WARP on a GPU, JAX on
+        the CPU).
+
+    Returns:
+      `(model, data)`: a Warp-impl `mjx.Model` whose `SPECIALISED_FIELDS` (but `dof_M0`) and
+      `geom_aabb` have a leading (N,) float32 axis, the rest the template's; and `mjx.Data` of
+      the template at qpos0 with a leading (N,) axis on its per-world fields.
+
+    Raises:
+      RuntimeError: when MJX's Warp implementation cannot run here (the reason is given).
+    """
+    _require()
+    template = space.template
+    worlds = models.body_mass.shape[0] * envs
+    base = put_model(template, graph_mode)
+    per_world = lambda x: jnp.repeat(jnp.asarray(x, jnp.float32), envs, axis=0)
+    fields = {n: per_world(getattr(models, n)) for n in SPECIALISED_FIELDS if n not in _NOT_IN_WARP}
+    fields["geom_aabb"] = _capsule_aabb(template, fields["geom_size"])
+    model = base.replace(**fields)
+
+    return model, make_worlds(template, worlds, naconmax_per_world, njmax)
+
+
+def put_model(mj_model: mujoco.MjModel, graph_mode=None) -> mjx.Model:
+    """`mj_model` as one Warp-impl model shared by every world (no per-world fields)."""
+    _require()
+    model = mjx.put_model(mj_model, impl="warp", graph_mode=graph_mode)
+    # Warp prints a warning for each step whose solver hits its iteration budget: ours is small
+    # on purpose (BodyPlan.iterations), so these would flood the output.
+    return model.replace(opt=model.opt.replace(_impl=model.opt._impl.replace(warn_overflow=0)))
+
+
+def make_worlds(
+    mj_model: mujoco.MjModel,
+    worlds: int,
+    naconmax_per_world: int | None = None,
+    njmax: int | None = None,
+) -> mjx.Data:
+    """Warp-impl data of `mj_model` at qpos0 for `worlds` worlds (contact pool shared).
+
+    Defaults: 2 contacts per geom and world, the most a capsule on the floor has (only
+    geom-floor pairs collide); 4 constraint rows per contact (pyramidal cone, condim 3) plus
+    one per joint (limits).
+    """
+    _require()
+    if naconmax_per_world is None:
+        naconmax_per_world = 2 * mj_model.ngeom
+    if njmax is None:
+        njmax = 4 * naconmax_per_world + mj_model.njnt
+    data = mjx.make_data(mj_model, impl="warp", naconmax=naconmax_per_world * worlds, njmax=njmax)
+    # Data's own vmap rule batches the per-world fields and keeps the contact pool shared.
+    return jax.vmap(lambda _: data)(jnp.arange(worlds))
+
+
+def step_worlds(model: mjx.Model, data: mjx.Data, ctrl: jax.Array) -> mjx.Data:
+    """One physics step of every world, one flat vmap.
+
+    Args:
+      model: a model from `to_warp` (per-world fields with a leading (N,) axis).
+      data: (N,) worlds.
+      ctrl: (N, nu) controls.
+
+    Returns:
+      (N,) worlds after one step.
+    """
+    return jax.vmap(mjx.step, in_axes=(None, 0))(model, data.replace(ctrl=ctrl))

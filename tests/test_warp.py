@@ -1,0 +1,143 @@
+"""The flat world batch (JAX impl) and MuJoCo Warp behind MJX against the nested JAX batch.
+
+The Warp tests are skipped where MuJoCo Warp is not installed (CI); here they run on the CPU,
+through MJX's Warp implementation, at 3 bodies x 2 envs per space.
+"""
+
+import re
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from mujoco.mjx import warp as mjx_warp
+
+import evojax_morph as em
+from evojax_morph import physics
+from evojax_morph import warp as ew
+from evojax_morph.physics import mjx
+
+BODIES, ENVS, STEPS = 3, 2, 5
+WARP_OK, WARP_REASON = ew.available()
+requires_warp = pytest.mark.skipif(not WARP_OK, reason=f"MuJoCo Warp: {WARP_REASON}")
+# Warp (float32) vs the JAX impl (float32), max |qpos difference| over the first 5 steps of
+# these 3 bodies x 2 envs, measured on this CPU: 7.3e-8 (Bad Walker), 9.7e-8 (Constructor),
+# 2.5e-8 (Length Walker), qpos up to 0.09; 30x the largest here. A world stepping another
+# body (the nested-vmap bug) moves by at least 1.9e-2.
+WARP_TOL = 3e-6
+
+
+def _morphs(space):
+    keys = jax.random.split(jax.random.PRNGKey(0), BODIES)
+    return jax.vmap(space.random_morphology, (0, None))(keys, space.default_horizon)
+
+
+def _bodies(space):
+    models = jax.jit(jax.vmap(space.mjx_model))(_morphs(space))
+    # Random walks may meet: make sure the bodies differ, or the isolation check proves nothing.
+    shape = np.concatenate([models.body_mass, models.body_pos.reshape(BODIES, -1)], 1)
+    assert all(not np.allclose(shape[i], shape[i - 1]) for i in range(BODIES)), shape
+    return models
+
+
+def _controls(space):
+    """(STEPS, B, E, nu): random, the same for every body, so that bodies alone differ."""
+    shape = (STEPS, 1, ENVS, space.template.nu)
+    ctrl = jax.random.uniform(jax.random.PRNGKey(1), shape, minval=-1.0, maxval=1.0)
+    return jnp.broadcast_to(ctrl, (STEPS, BODIES, ENVS, space.template.nu))
+
+
+def _nested_jax(space, models, ctrl):
+    """(STEPS, B, E, nq) qpos of today's batch: a vmap over bodies around a vmap over envs."""
+    make = lambda _: mjx.make_data(space.mjx_template())
+    data = jax.vmap(jax.vmap(make))(jnp.zeros((BODIES, ENVS)))
+    step = jax.vmap(jax.vmap(mjx.step, (None, 0)))
+
+    def body(data, c):
+        data = step(models, data.replace(ctrl=c))
+        return data, data.qpos
+
+    return jax.jit(lambda d, c: jax.lax.scan(body, d, c)[1])(data, ctrl)
+
+
+def test_specialise_writes_only_the_listed_fields(space):
+    models = _bodies(space)
+    template = space.mjx_template()
+    paths, leaves = zip(*jax.tree_util.tree_leaves_with_path(models))
+    changed = {
+        jax.tree_util.keystr(path)
+        for path, leaf, orig in zip(paths, leaves, jax.tree.leaves(template))
+        if not np.array_equal(np.asarray(leaf), np.broadcast_to(orig, leaf.shape))
+    }
+    listed = {f".{name}" for name in physics.SPECIALISED_FIELDS} | {".stat.meaninertia"}
+    assert changed <= listed, changed - listed
+
+
+def test_capsule_boxes_match_mujocos(space):
+    """The broadphase boxes `to_warp` writes are those MuJoCo compiles for the unpadded body."""
+    m = jax.tree.map(lambda x: x[0], _morphs(space))
+    export = mujoco.MjModel.from_xml_string(space.to_mjcf(m))
+    sizes = jax.jit(space.mjx_model)(m).geom_size
+    boxes = np.asarray(ew._capsule_aabb(space.template, sizes))
+    for g in range(export.ngeom):
+        name = export.geom(g).name
+        expected = export.geom_aabb[g].reshape(2, 3)
+        np.testing.assert_allclose(boxes[space.template.geom(name).id], expected, atol=1e-6)
+
+
+def test_flat_jax_batch_equals_nested(space):
+    models = _bodies(space)
+    ctrl = _controls(space)
+    expected = _nested_jax(space, models, ctrl)
+
+    flat, axes = physics.flat_models(models, ENVS)
+    data = jax.vmap(lambda _: mjx.make_data(space.mjx_template()))(jnp.arange(BODIES * ENVS))
+    step = jax.vmap(mjx.step, (axes, 0))
+
+    def body(data, c):
+        data = step(flat, data.replace(ctrl=c.reshape(BODIES * ENVS, -1)))
+        return data, data.qpos.reshape(BODIES, ENVS, -1)
+
+    got = jax.jit(lambda d, c: jax.lax.scan(body, d, c)[1])(data, ctrl)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-6)
+
+
+def test_unavailable_warp_is_a_clear_error(monkeypatch):
+    space = em.make_space("bad_walker")
+    with jax.enable_x64(True):  # float64 on: Warp cannot run, whether installed or not
+        ok, reason = ew.available()
+        assert not ok and reason
+        with pytest.raises(RuntimeError, match="the Warp physics cannot run: " + re.escape(reason)):
+            ew.to_warp(space, None, ENVS)
+    monkeypatch.setattr(mjx_warp, "WARP_INSTALLED", False)  # as in CI
+    ok, reason = ew.available()
+    assert not ok and "pip install 'evojax_morph[warp]'" in reason
+    with pytest.raises(RuntimeError, match="warp-lang is not installed"):
+        ew.put_model(space.template)
+
+
+@requires_warp
+def test_warp_flat_batch_agrees_with_jax_per_world(space):
+    models = _bodies(space)
+    ctrl = _controls(space)
+    expected = np.asarray(_nested_jax(space, models, ctrl))  # (STEPS, B, E, nq)
+
+    model, data = ew.to_warp(space, models, ENVS)
+    assert data.qpos.shape == (BODIES * ENVS, space.template.nq)
+
+    def body(data, c):
+        data = ew.step_worlds(model, data, c.reshape(BODIES * ENVS, -1))
+        return data, data.qpos.reshape(BODIES, ENVS, -1)
+
+    got = np.asarray(jax.jit(lambda d, c: jax.lax.scan(body, d, c)[1])(data, ctrl))
+    error = np.abs(got - expected).max()
+    assert error < WARP_TOL, error
+
+    # Each world reads its own body: had world w = b * E + e read body w % B (the nested-vmap
+    # bug), it would follow that body's trajectory (same start, same controls), which is far
+    # outside the tolerance.
+    wrong_body = np.arange(BODIES * ENVS).reshape(BODIES, ENVS) % BODIES
+    buggy = expected[:, wrong_body, np.arange(ENVS)[None, :]]
+    moved = np.abs(buggy - expected).max(axis=(0, 3))  # (B, E)
+    assert (moved[wrong_body != np.arange(BODIES)[:, None]] > 100 * WARP_TOL).all(), moved
