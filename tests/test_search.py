@@ -53,10 +53,11 @@ def a2c_learning(seeds) -> tuple[np.ndarray, np.ndarray]:
 def test_actor_critic_learns_constructor():
     """Episode returns rise from random play towards the space's best, and the entropy falls."""
     rise, fall = a2c_learning(range(12))
-    # Measured on 2 CPU cores (jax 0.10.2) over seeds 0-41: rise median 462 (range 335-610),
-    # entropy fall median 1.11 (range 0.43-1.93). A 12-seed median below 300 or 0.5 would take
-    # most seeds at the tail of those ranges.
-    assert np.median(rise) > 300, rise
+    # Measured on 2 CPU cores (jax 0.10.2) over seeds 0-47, on the Constructor as the source
+    # draws it (best return 800): rise median 660 (range 400-890), entropy fall median 0.92
+    # (range 0.16-2.09); the medians of seeds 0-11, 12-23, 24-35 and 36-47 were 652-699 and
+    # 0.81-1.07. A 12-seed median below 450 or 0.5 would take most seeds at the tail.
+    assert np.median(rise) > 450, rise
     assert np.median(fall) > 0.5, fall
 
 
