@@ -41,9 +41,10 @@ def fresh_run_dir(cfg: RunConfig) -> Path:
     return out
 
 
-def execute(cfg: RunConfig, out: Path, resume: bool) -> None:
+def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     """Runs `cfg` in the directory `out` (checked writable), from its last checkpoint if
-    `resume`; every process calls it, process 0 writes the files and prints."""
+    `resume`, drawing best.gif at the end if `gif`; every process calls it, process 0 writes
+    the files and prints."""
     lead = jax.process_index() == 0  # the process that writes files and prints
     if lead:
         (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
@@ -142,7 +143,7 @@ def execute(cfg: RunConfig, out: Path, resume: bool) -> None:
     if lead:
         writer.close()
         log_bodies.close()
-        write_results(out, p.space, rows, best, float(best_fitness), greedy, step, saved)
+        write_results(out, p.space, rows, best, float(best_fitness), greedy, step, saved, gif)
 
 
 def save_controllers(out: Path, p: Pipeline, seed: int, best, best_fitness: float, best_params,
@@ -165,10 +166,11 @@ def save_controllers(out: Path, p: Pipeline, seed: int, best, best_fitness: floa
 
 def write_results(
     out: Path, space, rows: list[dict], best, best_fitness: float, greedy: Greedy | None,
-    steps: int, saved: list[str]
+    steps: int, saved: list[str], gif: bool = True
 ) -> None:
     """curve.png, best.xml, trajectory.png (if `greedy`), summary.json and best.gif (if
-    controllers were `saved`), and a printed digest with the best bodies of the body log."""
+    controllers were `saved` and `gif`), and a printed digest with the best bodies of the body
+    log."""
     col = lambda name: np.array([r[name] for r in rows], float)  # noqa: E731  (resumed: strings)
     plots.plot_curve(
         out / "curve.png", col("step"), col("reward_median"), col("reward_q25"), col("reward_q75")
@@ -201,12 +203,13 @@ def write_results(
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     if saved:
         written += " controllers/"
+    if saved and gif:
         shown = video.render(out, "best", mp4=False)
         for note in shown.notes:
             print(f"best.gif: {note}")
         walked = shown.replay.distance[-1]
         written += f" best.gif ({shown.backend}; the best body walks {walked:.2f} m)"
-    else:
+    elif not saved:
         print("\nno controllers to keep: the fitness trains none (only ppo does), so no best.gif")
     print(f"\nwrote {out}/: {written}")
 

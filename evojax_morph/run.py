@@ -187,6 +187,12 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         default=defaults.checkpoint_every,
         help="chunks between checkpoints",
     )
+    add(
+        "--no-gif",
+        action="store_true",
+        help="skip best.gif at the end (its replay compiles and draws for up to a minute on a "
+        "CPU); the controllers are saved either way, for `python -m evojax_morph.render`",
+    )
     add_distributed_flags(parser)
     args = parser.parse_args(argv)
     if jax.process_count() > 1 and not args.out:
@@ -242,17 +248,17 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         parser.error(
             f"{str(out)!r} already holds a run: pass --resume to continue it, or another --out"
         )
-    return cfg, out, args.resume
+    return cfg, out, args.resume, not args.no_gif
 
 
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     start_deterministic(args)
     start_distributed(args)
-    cfg, out, resume = parse(argv)
+    cfg, out, resume, gif = parse(argv)
     barrier("parsed")  # every process checked --out before any of them writes there
     jax.config.update("jax_default_matmul_precision", "highest")
-    driver.execute(cfg, out, resume)
+    driver.execute(cfg, out, resume, gif)
     return 0
 
 
