@@ -141,7 +141,7 @@ def test_bad_walker_horizon_leaves_room_to_hold_m_star():
 
 
 def test_constructor_semantics():
-    space = em.make_space("constructor", horizon=6)
+    space = em.make_space("constructor", horizon=6, knees=2, leg_edges=2)
     m = space.initial()
     assert int(m.num_nodes) == 1 and np.asarray(space.action_mask(m))[0].all()
     m = space.mutate(m, 0, 4)  # leg at the stick's start (node 1)
@@ -197,7 +197,7 @@ def test_constructor_best_return_is_a_leg_every_step():
     """The predefined optimum after `horizon` mutations: 100 x horizon (legs stacked or kneed)."""
     space = em.make_space("constructor")
     m = space.initial()
-    for node in (0, 0, 0, 1, 1, 2, 2, 3):  # 3 legs on the stick, knees on three of them
+    for node in (0, 0, 0, 0, 1, 2, 3, 4):  # 4 legs on the stick, a knee on each
         m = space.mutate(m, node, 4)
     assert float(space.predefined_fitness(m)) == 100.0 * space.horizon == 800.0
     assert not np.asarray(space.action_mask(m)).any()
