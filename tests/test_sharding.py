@@ -61,6 +61,8 @@ def test_four_devices_give_one_devices_fitness_and_checkpoints_move(tmp_path):
         "2",
         "--chunk",
         "1",
+        "--horizon",  # a greedy rollout of 2 evaluations, not Bad Walker's 5
+        "2",
         "--no-gif",  # tests/test_render.py draws a run's best.gif; here it would cost a minute
         "--out",
         str(out),
@@ -100,10 +102,10 @@ def test_four_devices_give_one_devices_fitness_and_checkpoints_move(tmp_path):
     assert after[:3] == before and len(after) == 4  # steps 1-2 kept, step 3 added
     summary = json.loads((out / "summary.json").read_text())
     assert summary["env_steps"] == 3 and np.isfinite(summary["best_fitness"])
-    assert len(summary["greedy_trajectory"]) == 6  # m0 and Bad Walker's 5 mutations
+    assert len(summary["greedy_trajectory"]) == 3  # m0 and 2 mutations (--horizon 2)
     # the trained controllers of the best body and the greedy trajectory's
     saved = sorted(d.name for d in (out / "controllers").iterdir())
-    assert saved == ["best"] + [f"step{t}" for t in range(6)] == summary["controllers"]
+    assert saved == ["best"] + [f"step{t}" for t in range(3)] == summary["controllers"]
     db = sqlite3.connect(out / "bodies.sqlite")
     assert db.execute("SELECT COUNT(*), MAX(step) FROM bodies").fetchone() == (6 * 4, 3)
     db.close()

@@ -86,7 +86,10 @@ def test_capsule_boxes_match_mujocos(space):
         np.testing.assert_allclose(boxes[space.template.geom(name).id], expected, atol=1e-6)
 
 
-def test_flat_jax_batch_equals_nested(space):
+def test_flat_jax_batch_equals_nested():
+    """One space suffices: the layout of worlds is the same for every space (and each space's
+    compile costs 20-30 s of the suite)."""
+    space = em.make_space("length_walker")
     models = _bodies(space)
     ctrl = _controls(space)
     expected = _nested_jax(space, models, ctrl)

@@ -48,9 +48,9 @@ class Constructor(Space):
     edge on one leg (more than `knees` legs or `leg_edges` edges on a leg); and any body of more
     than 1 + horizon limbs. Each extra slot is in every leg of the template, and every slot
     costs physics time on every body of a batch, active or not. Measured on the CPU
-    (docs/benchmarks.md, "Physics"): a batch of bodies steps 1.9x slower on this default
+    (docs/benchmarks.md, "Physics"): a batch of bodies steps 2.4x slower on this default
     template (17 bodies, 41 capsules) than on leaf legs (`leg_depth=1, leg_edges=0`: 9 bodies,
-    17 capsules, the cheapest), and 5.2x slower with `knees=2, leg_edges=2` (25 bodies, 81
+    17 capsules, the cheapest), and 4.9x slower with `knees=2, leg_edges=2` (25 bodies, 81
     capsules). Stacked legs, which the source's agent builds (its Figure 7), need no extra
     slots: the trunk has one for every step.
 
