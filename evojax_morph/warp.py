@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
-from evojax_morph.physics import SPECIALISED_FIELDS, mjx
+from evojax_morph.physics import SPECIALISED_FIELDS, flat_models, mjx
 from evojax_morph.spaces import Space
 
 INSTALL_HINT = "pip install 'evojax_morph[warp]'"
@@ -103,8 +103,12 @@ def to_warp(
     template = space.template
     worlds = models.body_mass.shape[0] * envs
     base = put_model(template, graph_mode)
-    per_world = lambda x: jnp.repeat(jnp.asarray(x, jnp.float32), envs, axis=0)
-    fields = {n: per_world(getattr(models, n)) for n in SPECIALISED_FIELDS if n not in _NOT_IN_WARP}
+    flat, _ = flat_models(models, envs)  # the fields specialise writes, one row per world
+    fields = {
+        n: jnp.asarray(getattr(flat, n), jnp.float32)
+        for n in SPECIALISED_FIELDS
+        if n not in _NOT_IN_WARP
+    }
     fields["geom_aabb"] = _capsule_aabb(template, fields["geom_size"])
     model = base.replace(**fields)
 

@@ -47,35 +47,30 @@ def step_world(model, data, t):
     return mjx.step(model, data.replace(ctrl=controls(data, t, model.opt.timestep)))
 
 
+def _scan(steps: int, step_all):
+    """jit(fn(models, data) -> data): `steps` calls of `step_all(models, data, t)`."""
+
+    @jax.jit
+    def rollout(models, data):
+        def body(data, t):
+            return step_all(models, data, t), None
+
+        return jax.lax.scan(body, data, jnp.arange(steps))[0]
+
+    return rollout
+
+
 def make_rollout(steps: int, batched_models: bool):
     """jit(fn(models, data) -> data): `steps` physics steps of every world, sinusoidal controls.
 
     Data has a leading (B, E) axis; models a leading (B,) axis if `batched_models`."""
     per_env = jax.vmap(step_world, (None, 0, None))  # E worlds of one model
-    per_model = jax.vmap(per_env, (0 if batched_models else None, 0, None))
-
-    @jax.jit
-    def rollout(models, data):
-        def body(data, t):
-            return per_model(models, data, t), None
-
-        return jax.lax.scan(body, data, jnp.arange(steps))[0]
-
-    return rollout
+    return _scan(steps, jax.vmap(per_env, (0 if batched_models else None, 0, None)))
 
 
 def make_flat_rollout(steps: int, in_axes):
     """jit(fn(model, data) -> data) over one flat batch: data (N,), model fields per `in_axes`."""
-    per_world = jax.vmap(step_world, (in_axes, 0, None))
-
-    @jax.jit
-    def rollout(model, data):
-        def body(data, t):
-            return per_world(model, data, t), None
-
-        return jax.lax.scan(body, data, jnp.arange(steps))[0]
-
-    return rollout
+    return _scan(steps, jax.vmap(step_world, (in_axes, 0, None)))
 
 
 def make_warp_rollout(steps: int, timestep: float):
