@@ -17,7 +17,7 @@ from pathlib import Path
 import jax
 
 from evojax_morph import ppo
-from evojax_morph.fitnesses import FitnessConfig
+from evojax_morph.fitnesses import FitnessConfig, get_fitness
 from evojax_morph.morphology import Morphology
 from evojax_morph.spaces import Space, make_space
 
@@ -38,8 +38,8 @@ class SavedController:
 
 
 def has_controllers(cfg: FitnessConfig) -> bool:
-    """Whether a fitness of `cfg` trains controllers worth keeping (the PPO fitness)."""
-    return cfg.kind == "ppo"
+    """Whether a fitness of `cfg` trains controllers worth keeping (its kind says so)."""
+    return get_fitness(cfg.kind).trains_controllers
 
 
 def _checkpointer():

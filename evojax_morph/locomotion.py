@@ -7,12 +7,14 @@ serves every morphology of a space and a batch of models vmaps through it.
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from evojax_morph.engines import Engine
 from evojax_morph.physics import ROOT_JOINTS, mjx
 from evojax_morph.spaces import Space
 
@@ -29,6 +31,13 @@ class TaskConfig:
     min_height: float = 0.7  # ...or sinks below this fraction of its height at reset
     reset_noise: float = 0.05  # uniform noise on active joint angles and all velocities
     max_speed: float = 100.0  # a generalised velocity beyond this marks a diverged simulation
+
+
+class Body(NamedTuple):
+    """What the task reads of a body's specialised model, per world."""
+
+    motors: jax.Array  # (action_size,) bool: the motors the body has
+    height: jax.Array  # (): the trunk's height at rest, above the floor
 
 
 @struct.dataclass
@@ -79,37 +88,76 @@ class Locomotion:
         """(action_size,) bool: the motors the morphology of `model` has."""
         return model.actuator_gear[self._actuator, 0] != 0
 
-    def _obs(self, model: mjx.Model, data: mjx.Data) -> jax.Array:
-        mask = self.action_mask(model)
-        _, z, pitch = data.qpos[self._root_qpos]
-        height = z + model.body_pos[self._root_body, 2]
+    def body(self, model: mjx.Model) -> Body:
+        """What the task reads of one specialised body (vmap it for a batch)."""
+        return Body(self.action_mask(model), model.body_pos[self._root_body, 2])
+
+    # ONE WORLD (JAX engine): the model is the body's own
+    def reset(self, key: jax.Array, model: mjx.Model) -> EnvState:
+        """A new episode: the body at rest above the floor, slightly perturbed."""
+        data = mjx.make_data(model)
+        qpos, qvel = self._perturb(key, self.body(model), data.qpos, data.qvel)
+        data = mjx.forward(model, data.replace(qpos=qpos, qvel=qvel))
+        return self._first(self.body(model), data.qpos, data.qvel).replace(data=data)
+
+    def step(self, model: mjx.Model, state: EnvState, action: jax.Array) -> EnvState:
+        """One control step of `frame_skip` physics steps."""
+        body = self.body(model)
+        action, ctrl = self._controls(body, state.data.ctrl, action)
+        data = jax.lax.fori_loop(
+            0, self.cfg.frame_skip, lambda _, d: mjx.step(model, d), state.data.replace(ctrl=ctrl)
+        )
+        outcome = self._outcome(body, state.data.qpos, state.steps, action, data.qpos, data.qvel)
+        return outcome.replace(data=data)
+
+    # A FLAT BATCH OF WORLDS on any engine (`evojax_morph.engines`): N worlds, (N,) bodies
+    def reset_worlds(self, engine: Engine, worlds, bodies: Body, keys: jax.Array) -> EnvState:
+        """`reset` of N worlds at once: `worlds` from `engine.prepare`, `bodies` (N,) each
+        world's `body`, keys (N,)."""
+        data = engine.make_data(worlds, self.space, keys.shape[0])
+        qpos, qvel = jax.vmap(self._perturb)(keys, bodies, data.qpos, data.qvel)
+        data = engine.forward(worlds, data.replace(qpos=qpos, qvel=qvel))
+        return jax.vmap(self._first)(bodies, data.qpos, data.qvel).replace(data=data)
+
+    def step_worlds(
+        self, engine: Engine, worlds, bodies: Body, state: EnvState, action: jax.Array
+    ) -> EnvState:
+        """`step` of N worlds at once; action (N, action_size)."""
+        action, ctrl = jax.vmap(self._controls)(bodies, state.data.ctrl, action)
+        step = lambda _, d: engine.step(worlds, d)
+        data = jax.lax.fori_loop(0, self.cfg.frame_skip, step, state.data.replace(ctrl=ctrl))
+        outcome = jax.vmap(self._outcome)(
+            bodies, state.data.qpos, state.steps, action, data.qpos, data.qvel
+        )
+        return outcome.replace(data=data)
+
+    # THE TASK, per world, on positions and velocities
+    def _perturb(self, key: jax.Array, body: Body, qpos: jax.Array, qvel: jax.Array):
+        key_q, key_v = jax.random.split(key)
+        mask = body.motors.astype(qpos.dtype)
+        noise_q = jax.random.uniform(key_q, (self.action_size,), minval=-1, maxval=1) * mask
+        dof_on = jnp.ones(qvel.shape[-1]).at[self._limb_dof].set(mask)
+        noise_v = jax.random.uniform(key_v, qvel.shape, minval=-1, maxval=1) * dof_on
+        noise = self.cfg.reset_noise
+        return qpos.at[self._limb_qpos].add(noise * noise_q), qvel + noise * noise_v
+
+    def _obs(self, body: Body, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
+        _, z, pitch = qpos[self._root_qpos]
         return jnp.concatenate(
             [
-                jnp.stack([height, jnp.sin(pitch), jnp.cos(pitch)]),
-                data.qvel[self._root_dof],
-                data.qpos[self._limb_qpos] * mask,
-                data.qvel[self._limb_dof] * mask,
+                jnp.stack([z + body.height, jnp.sin(pitch), jnp.cos(pitch)]),
+                qvel[self._root_dof],
+                qpos[self._limb_qpos] * body.motors,
+                qvel[self._limb_dof] * body.motors,
             ]
         )
 
-    def reset(self, key: jax.Array, model: mjx.Model) -> EnvState:
-        """A new episode: the body at rest above the floor, slightly perturbed."""
-        cfg = self.cfg
-        key_q, key_v = jax.random.split(key)
-        data = mjx.make_data(model)
-        mask = self.action_mask(model).astype(data.qpos.dtype)
-        noise_q = jax.random.uniform(key_q, (self.action_size,), minval=-1, maxval=1) * mask
-        dof_on = jnp.ones(model.nv).at[self._limb_dof].set(mask)
-        noise_v = jax.random.uniform(key_v, (model.nv,), minval=-1, maxval=1) * dof_on
-        data = data.replace(
-            qpos=data.qpos.at[self._limb_qpos].add(cfg.reset_noise * noise_q),
-            qvel=data.qvel + cfg.reset_noise * noise_v,
-        )
-        data = mjx.forward(model, data)
+    def _first(self, body: Body, qpos: jax.Array, qvel: jax.Array) -> EnvState:
+        """The state after a reset, but its data (set by the caller: data is never vmapped)."""
         false = jnp.zeros((), bool)
         return EnvState(
-            data=data,
-            obs=self._obs(model, data),
+            data=None,
+            obs=self._obs(body, qpos, qvel),
             reward=jnp.zeros(()),
             terminated=false,
             truncated=false,
@@ -117,31 +165,27 @@ class Locomotion:
             diverged=false,
         )
 
-    def step(self, model: mjx.Model, state: EnvState, action: jax.Array) -> EnvState:
-        """One control step of `frame_skip` physics steps."""
+    def _controls(self, body: Body, ctrl: jax.Array, action: jax.Array):
+        action = jnp.where(body.motors, jnp.clip(action, -1.0, 1.0), 0.0)
+        return action, ctrl.at[self._actuator].set(action)
+
+    def _outcome(self, body: Body, qpos_before, steps, action, qpos, qvel) -> EnvState:
+        """The state after a control step, but its data (set by the caller)."""
         cfg = self.cfg
-        mask = self.action_mask(model)
-        action = jnp.where(mask, jnp.clip(action, -1.0, 1.0), 0.0)
-        ctrl = state.data.ctrl.at[self._actuator].set(action)
-        x_before = state.data.qpos[self._root_qpos[0]]
-        data = jax.lax.fori_loop(
-            0, cfg.frame_skip, lambda _, d: mjx.step(model, d), state.data.replace(ctrl=ctrl)
-        )
-        forward_velocity = (data.qpos[self._root_qpos[0]] - x_before) / self.dt
+        forward_velocity = (qpos[self._root_qpos[0]] - qpos_before[self._root_qpos[0]]) / self.dt
         reward = forward_velocity + cfg.healthy_reward - cfg.ctrl_cost * jnp.sum(action**2)
 
-        finite = jnp.isfinite(data.qpos).all() & jnp.isfinite(data.qvel).all()
-        diverged = ~finite | (jnp.abs(data.qvel) > cfg.max_speed).any()
-        obs = self._obs(model, data)
+        finite = jnp.isfinite(qpos).all() & jnp.isfinite(qvel).all()
+        diverged = ~finite | (jnp.abs(qvel) > cfg.max_speed).any()
+        obs = self._obs(body, qpos, qvel)
         reward = jnp.where(diverged | ~jnp.isfinite(reward), 0.0, reward)
         obs = jnp.where(diverged | ~jnp.isfinite(obs), 0.0, obs)
-        tilted = jnp.abs(data.qpos[self._root_qpos[2]]) > cfg.max_tilt
-        start_height = model.body_pos[self._root_body, 2]
-        sunk = data.qpos[self._root_qpos[1]] + start_height < cfg.min_height * start_height
+        tilted = jnp.abs(qpos[self._root_qpos[2]]) > cfg.max_tilt
+        sunk = qpos[self._root_qpos[1]] + body.height < cfg.min_height * body.height
         terminated = tilted | sunk | diverged
-        steps = state.steps + 1
+        steps = steps + 1
         return EnvState(
-            data=data,
+            data=None,
             obs=obs,
             reward=reward,
             terminated=terminated,

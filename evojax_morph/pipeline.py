@@ -36,6 +36,7 @@ class RunConfig:
     horizon: int = 0  # mutations per episode; 0: the space's default_horizon
     train_steps: int = 10_000  # PPO control steps per fitness evaluation (per controller)
     controllers: int = 1  # independent PPO controllers per body; the fitness is their mean
+    physics: str = "jax"  # the engine of the fitness's worlds: jax | warp (`engines`)
     hidden: int = 64  # GNN width
     explore_steps: int = 20  # ddqn: environment steps over which epsilon anneals from 1 to 0.05
     learning_starts: int = 32  # ddqn: transitions stored before the Q-network learns
@@ -63,7 +64,7 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     """
     space = make_space(cfg.space)
     fit_cfg = FitnessConfig(kind=cfg.fitness, ppo=standard_ppo(cfg.train_steps, cfg.controllers),
-                            classifier=cfg.classifier)
+                            classifier=cfg.classifier, physics=cfg.physics)
     init_fn, fitness_fn = make_fitness_fn(space, fit_cfg, mesh)
     horizon = cfg.horizon or space.default_horizon
     env = EvolutionEnv(space, fitness_fn, init_fn, horizon=horizon, num_envs=cfg.num_envs)

@@ -1,8 +1,11 @@
-"""The inner PPO: one pure function trains the controller of one morphology.
+"""The inner PPO: one pure function trains the controllers of a batch of different bodies.
 
-`make_train(space, task_cfg, ppo_cfg)` returns `init(key) -> Params` and
-`train(key, morph, params) -> TrainResult`; `jax.jit(jax.vmap(train))` trains a batch of
-different bodies, each with `controllers` x `num_envs` worlds, in one compiled call. With
+`make_train(space, task_cfg, ppo_cfg, physics)` returns `init(key) -> Params` and
+`train(keys, morphs, params) -> TrainResult`, batched over bodies at its top: `jax.jit(train)`
+trains B bodies, each with `controllers` x `num_envs` worlds, in one compiled call. Policies,
+values and updates are vmapped over the B x K controllers; the physics of a control step is ONE
+step of all B x K x num_envs worlds on the engine `physics` names (`evojax_morph.engines`): the
+flat batch MuJoCo Warp needs, and on the JAX engine a vmap over bodies around their worlds. With
 `controllers` K > 1 every body trains K independent controllers side by side (parameters with a
 leading (K,) axis, all inherited by a child) and its fitness is their mean: one PPO run is a
 noisy measure of a body, since a controller either finds a gait or does not
@@ -27,6 +30,7 @@ from brax.training.agents.ppo import losses as ppo_losses
 from brax.training.agents.ppo import networks as ppo_networks
 from flax import struct
 
+from evojax_morph.engines import get_engine, repeat_worlds
 from evojax_morph.locomotion import Locomotion, TaskConfig
 from evojax_morph.morphology import Morphology, tree_select
 from evojax_morph.spaces import Space
@@ -173,18 +177,32 @@ def make_evaluate(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOCon
     return evaluate
 
 
-def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig = PPOConfig()):
-    """Returns `(init, train)` for the space's locomotion task; see the module docstring."""
+def make_train(
+    space: Space,
+    task_cfg: TaskConfig = TaskConfig(),
+    cfg: PPOConfig = PPOConfig(),
+    physics: str = "jax",
+):
+    """Returns `(init, train)` for the space's locomotion task on the engine `physics`.
+
+    init(key) -> Params: one body's controllers (K stacked along a leading axis if K > 1).
+    train(keys (B,), morphs (B, ...), params (B, ...)) -> TrainResult of (B,) arrays: each body
+      trains its K controllers from `params`, every world of every body (B x K x num_envs) in
+      one flat physics batch (`evojax_morph.engines`), then scores them (`eval_episodes`
+      deterministic episodes each, B x K x eval_episodes worlds).
+    """
     cfg.validate()
+    engine = get_engine(physics)
     env = Locomotion(space, task_cfg)
     networks = _networks(env, cfg)
     dist = networks.parametric_action_distribution
     policy_apply = networks.policy_network.apply
     value_apply = networks.value_network.apply
     optimizer = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate))
-    num_envs, horizon = cfg.num_envs, cfg.unroll_length
-    evaluate = make_evaluate(space, task_cfg, cfg)
+    num_envs, horizon, episodes = cfg.num_envs, cfg.unroll_length, cfg.eval_episodes
+    policy = make_policy(space, task_cfg, cfg)
     minibatch = num_envs * horizon // cfg.num_minibatches
+    split2 = jax.vmap(jax.random.split)  # (L,) keys -> (L, 2) keys
 
     def init(key: jax.Array) -> Params:
         """Fresh parameters: one controller, or K stacked along a leading axis."""
@@ -214,70 +232,97 @@ def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig
         loss = policy_loss + cfg.vf_coef * value_loss - cfg.entropy_cost * entropy
         return loss, entropy
 
-    def train(key: jax.Array, morph: Morphology, params: Params) -> TrainResult:
+    def train(keys: jax.Array, morphs: Morphology, params: Params) -> TrainResult:
         # Full float32 matmuls wherever train is traced (em.evaluate, the agents' loops): TF32 on
         # GPUs perturbs physics and PPO more than RL tolerates.
         with jax.default_matmul_precision("highest"):
-            model = space.mjx_model(morph)
-            if cfg.controllers == 1:
-                return train_one(key, model, params)
-            keys = jax.random.split(key, cfg.controllers)
-            out = jax.vmap(train_one, (0, None, 0))(keys, model, params)
+            models = jax.vmap(space.mjx_model)(morphs)
+            k, bodies = cfg.controllers, keys.shape[0]
+            if k == 1:
+                return train_learners(keys, models, params)
+            # The K controllers of body b are learners b * K ... b * K + K - 1.
+            keys = jax.vmap(lambda key: jax.random.split(key, k))(keys)
+            merge = lambda x: x.reshape((bodies * k,) + x.shape[2:])
+            out = train_learners(merge(keys), models, jax.tree.map(merge, params))
+            out = jax.tree.map(lambda x: x.reshape((bodies, k) + x.shape[1:]), out)
             return TrainResult(
                 params=out.params,
-                fitness=out.fitness.mean(),
-                fitness_std=out.fitness.std(),
-                diverged=out.diverged.any(),
-                train_return=out.train_return.mean(),
-                entropy=out.entropy.mean(),
+                fitness=out.fitness.mean(1),
+                fitness_std=out.fitness.std(1),
+                diverged=out.diverged.any(1),
+                train_return=out.train_return.mean(1),
+                entropy=out.entropy.mean(1),
             )
 
-    def train_one(key: jax.Array, model, params: Params) -> TrainResult:
-        mask = env.action_mask(model)
-        num_active = jnp.maximum(mask.sum(), 1)
-        reset = jax.vmap(env.reset, (0, None))
-        step = jax.vmap(env.step, (None, 0, 0))
+    def train_learners(keys: jax.Array, models, params: Params) -> TrainResult:
+        """L = B x K learners (controllers), each on its body's model with num_envs worlds."""
+        learners, bodies = keys.shape[0], models.body_mass.shape[0]
+        per_body = learners // bodies
+        worlds = engine.prepare(space, models, per_body * num_envs)
+        body = jax.vmap(env.body)(models)
+        world_bodies = repeat_worlds(body, per_body * num_envs)  # (L x E,)
+        mask = repeat_worlds(body.motors, per_body)  # (L, A)
+        num_active = jnp.maximum(mask.sum(-1), 1)
+        by_learner = lambda x: x.reshape((learners, num_envs) + x.shape[1:])
+        flat = lambda x: x.reshape((learners * num_envs,) + x.shape[2:])
 
-        key, key_reset = jax.random.split(key)
-        first = reset(jax.random.split(key_reset, num_envs), model)
+        keys, key_reset = jnp.moveaxis(split2(keys), 1, 0)
+        reset_keys = jax.vmap(lambda key: jax.random.split(key, num_envs))(key_reset)
+        first = env.reset_worlds(engine, worlds, world_bodies, flat(reset_keys))
         net = {"policy": params.policy, "value": params.value}
-        opt_state = optimizer.init(net)
+        opt_state = jax.vmap(optimizer.init)(net)
 
         def update(carry, _):
-            normalizer, net, opt_state, state, episode_return, last_return, key = carry
+            normalizer, net, opt_state, state, episode_return, last_return, keys = carry
 
-            # COLLECT TRAJECTORIES
+            # COLLECT TRAJECTORIES: every learner acts, then every world steps in one batch
             def env_step(carry, _):
-                state, episode_return, last_return, key = carry
-                key, key_act = jax.random.split(key)
-                logits = policy_apply(normalizer, net["policy"], state.obs)
-                raw = dist.sample_no_postprocessing(logits, key_act)
-                nxt = step(model, state, dist.postprocess(raw))
-                episode_return = episode_return + nxt.reward
+                state, episode_return, last_return, keys = carry
+                keys, key_act = jnp.moveaxis(split2(keys), 1, 0)
+                obs = by_learner(state.obs)
+                logits = jax.vmap(policy_apply)(normalizer, net["policy"], obs)
+                raw = jax.vmap(dist.sample_no_postprocessing)(logits, key_act)
+                nxt = env.step_worlds(engine, worlds, world_bodies, state, flat(dist.postprocess(raw)))
+                reward, done = by_learner(nxt.reward), by_learner(nxt.done)
+                episode_return = episode_return + reward
                 transition = Transition(
-                    obs=state.obs,
+                    obs=obs,
                     raw_action=raw,
-                    log_prob=masked_log_prob(dist, logits, raw, mask),
-                    reward=nxt.reward,
-                    terminated=nxt.terminated.astype(nxt.reward.dtype),
-                    truncated=nxt.truncated.astype(nxt.reward.dtype),
-                    diverged=nxt.diverged,
+                    log_prob=masked_log_prob(dist, logits, raw, mask[:, None]),
+                    reward=reward,
+                    terminated=by_learner(nxt.terminated).astype(reward.dtype),
+                    truncated=by_learner(nxt.truncated).astype(reward.dtype),
+                    diverged=by_learner(nxt.diverged),
                 )
-                last_return = jnp.where(nxt.done, episode_return, last_return)
+                last_return = jnp.where(done, episode_return, last_return)
                 # AUTO-RESET to each world's own first state
-                nxt = tree_select(nxt.done, first, nxt)
-                episode_return = jnp.where(nxt.steps == 0, 0.0, episode_return)
-                return (nxt, episode_return, last_return, key), transition
+                nxt = tree_select(nxt.done, first.replace(data=None), nxt.replace(data=None)).replace(
+                    data=engine.where(nxt.done, first.data, nxt.data)
+                )
+                episode_return = jnp.where(by_learner(nxt.steps) == 0, 0.0, episode_return)
+                return (nxt, episode_return, last_return, keys), transition
 
-            (state, episode_return, last_return, key), traj = jax.lax.scan(
-                env_step, (state, episode_return, last_return, key), length=horizon
+            (state, episode_return, last_return, keys), traj = jax.lax.scan(
+                env_step, (state, episode_return, last_return, keys), length=horizon
             )
+            traj = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), traj)  # (L, T, E, ...)
+            normalizer, net, opt_state, keys, entropy = jax.vmap(learn)(
+                normalizer, net, opt_state, traj, by_learner(state.obs), mask, keys
+            )
+            metrics = {
+                "return": last_return.mean(-1),
+                "entropy": entropy / num_active,
+                "diverged": traj.diverged.any((1, 2)),
+            }
+            return (normalizer, net, opt_state, state, episode_return, last_return, keys), metrics
 
+        def learn(normalizer, net, opt_state, traj, last_obs, mask, key):
+            """One learner's PPO update from its (T, E) trajectory."""
             # ADVANTAGES (brax's GAE: a step that hit the time limit is masked out, not bootstrapped)
             if cfg.normalize_observations:
                 normalizer = running_statistics.update(normalizer, traj.obs)
             values = value_apply(normalizer, net["value"], traj.obs)
-            bootstrap = value_apply(normalizer, net["value"], state.obs)
+            bootstrap = value_apply(normalizer, net["value"], last_obs)
             targets, advantages = ppo_losses.compute_gae(
                 truncation=traj.truncated,
                 termination=traj.terminated,
@@ -289,8 +334,8 @@ def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig
             )
 
             # UPDATE NETWORK: epochs x minibatches over the flattened (T x E) samples
-            flat = lambda x: x.reshape((num_envs * horizon,) + x.shape[2:])
-            samples = jax.tree.map(flat, (traj, advantages, targets))
+            flat_samples = lambda x: x.reshape((num_envs * horizon,) + x.shape[2:])
+            samples = jax.tree.map(flat_samples, (traj, advantages, targets))
 
             def epoch(carry, key):
                 net, opt_state = carry
@@ -313,31 +358,53 @@ def make_train(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig
             (net, opt_state), entropy = jax.lax.scan(
                 epoch, (net, opt_state), jax.random.split(key_epochs, cfg.update_epochs)
             )
-            metrics = {
-                "return": last_return.mean(),
-                "entropy": entropy.mean() / num_active,
-                "diverged": traj.diverged.any(),
-            }
-            return (normalizer, net, opt_state, state, episode_return, last_return, key), metrics
+            return normalizer, net, opt_state, key, entropy.mean()
 
-        zeros = jnp.zeros(num_envs, first.reward.dtype)
-        carry = (params.normalizer, net, opt_state, first, zeros, zeros, key)
+        zeros = jnp.zeros((learners, num_envs), first.reward.dtype)
+        carry = (params.normalizer, net, opt_state, first, zeros, zeros, keys)
         steps = cfg.num_updates if cfg.train_steps else 0
-        (normalizer, net, _, _, _, _, key), metrics = jax.lax.scan(update, carry, length=steps)
+        (normalizer, net, _, _, _, _, keys), metrics = jax.lax.scan(update, carry, length=steps)
         params = Params(normalizer=normalizer, policy=net["policy"], value=net["value"])
 
         # EVALUATE: deterministic policy, eval_episodes episodes from fresh resets
-        returns, eval_diverged = evaluate(key, model, params)
-        diverged = eval_diverged.any() | (metrics["diverged"].any() if steps else False)
-        last = lambda name: metrics[name][-1] if steps else jnp.zeros(())
+        returns, eval_diverged = evaluate(keys, models, params)
+        diverged = eval_diverged.any(-1) | (metrics["diverged"].any(0) if steps else False)
+        last = lambda name: metrics[name][-1] if steps else jnp.zeros(learners)
         return TrainResult(
             params=params,
-            fitness=jnp.nan_to_num(returns.mean()),
-            fitness_std=jnp.nan_to_num(returns.std()),
+            fitness=jnp.nan_to_num(returns.mean(-1)),
+            fitness_std=jnp.nan_to_num(returns.std(-1)),
             diverged=diverged,
             train_return=last("return"),
             entropy=last("entropy"),
         )
+
+    def evaluate(keys: jax.Array, models, params: Params):
+        """(L, eval_episodes) returns and diverged flags of L learners' deterministic policies,
+        the episodes of learner l reset with `split(keys[l], eval_episodes)`, as `make_evaluate`
+        scores one controller."""
+        learners, bodies = keys.shape[0], models.body_mass.shape[0]
+        per_body = learners // bodies * episodes
+        worlds = engine.prepare(space, models, per_body)
+        world_bodies = repeat_worlds(jax.vmap(env.body)(models), per_body)
+        reset_keys = jax.vmap(lambda key: jax.random.split(key, episodes))(keys)
+        state = env.reset_worlds(engine, worlds, world_bodies, reset_keys.reshape((-1,) + keys.shape[1:]))
+        by_learner = lambda x: x.reshape((learners, episodes) + x.shape[1:])
+
+        def body(carry, _):
+            state, returns, alive, diverged = carry
+            action = jax.vmap(policy)(params, by_learner(state.obs))
+            state = env.step_worlds(engine, worlds, world_bodies, state, action.reshape(-1, env.action_size))
+            returns = returns + jnp.where(alive, by_learner(state.reward), 0.0)
+            diverged = diverged | (alive & by_learner(state.diverged))
+            return (state, returns, alive & ~by_learner(state.done), diverged), None
+
+        zeros = jnp.zeros((learners, episodes), state.reward.dtype)
+        alive = jnp.ones((learners, episodes), bool)
+        (_, returns, _, diverged), _ = jax.lax.scan(
+            body, (state, zeros, alive, ~alive), length=task_cfg.episode_length
+        )
+        return returns, diverged
 
     return init, train
 

@@ -21,6 +21,7 @@ import jax
 
 from evojax_morph import agents, driver
 from evojax_morph.determinism import deterministic_gpu
+from evojax_morph.engines import AUTO, list_engines, resolve
 from evojax_morph.fitnesses import list_fitnesses
 from evojax_morph.pipeline import RunConfig
 from evojax_morph.sharding import barrier, init_distributed
@@ -157,6 +158,14 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         "one controller's noise, docs/benchmarks.md)",
     )
     add(
+        "--physics",
+        default="auto",
+        choices=[AUTO] + list_engines(),
+        help="the engine that steps the fitness's worlds: jax (MJX's JAX engine), warp (MuJoCo "
+        "Warp, `pip install 'evojax_morph[warp]'`), or auto: warp where it runs on a GPU, else "
+        "jax (the run says which it took)",
+    )
+    add(
         "--fast-gpu",
         action="store_true",
         help="leave XLA's deterministic GPU ops off: about 1.4x faster, but the same seed no "
@@ -228,6 +237,21 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
                 f"the classifier in {args.classifier!r} was trained on another space than "
                 f"{args.space}"
             )
+    def physics(name: str, fitness: str) -> str:
+        """The engine `name` resolves to ("auto"), checked: exit 2 with the reason if it cannot
+        run here."""
+        if fitness == "tame" and name not in (AUTO, "jax"):
+            parser.error("--physics: the tame fitness runs on the JAX engine only")
+        try:
+            name, why = resolve("jax" if fitness == "tame" else name)
+        except (RuntimeError, ValueError) as e:
+            parser.error(f"--physics: {e}")
+        if fitness == "ppo":
+            print(f"physics: {name} ({why})", flush=True)
+        return name
+
+    if not args.resume:
+        args.physics = physics(args.physics, args.fitness)
     cfg = RunConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(RunConfig)})
     classifier = str(Path(args.classifier).resolve()) if args.classifier else ""
     cfg = dataclasses.replace(cfg, classifier=classifier)
@@ -244,6 +268,7 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         if not saved.exists():
             parser.error(f"--resume: no run in {str(out)!r} (no config.json)")
         cfg = dataclasses.replace(RunConfig(**json.loads(saved.read_text())), steps=args.steps)
+        cfg = dataclasses.replace(cfg, physics=physics(cfg.physics, cfg.fitness))
     elif (out / "checkpoints").exists():
         parser.error(
             f"{str(out)!r} already holds a run: pass --resume to continue it, or another --out"

@@ -100,8 +100,16 @@ def to_warp(
       RuntimeError: when MJX's Warp implementation cannot run here (the reason is given).
     """
     _require()
-    template = space.template
+    model = world_model(space, models, envs, graph_mode)
     worlds = models.body_mass.shape[0] * envs
+    return model, make_worlds(space.template, worlds, naconmax_per_world, njmax)
+
+
+def world_model(space: Space, models: mjx.Model, envs: int, graph_mode=None) -> mjx.Model:
+    """The Warp model of `to_warp` alone: B bodies' `SPECIALISED_FIELDS` (but `dof_M0`) and
+    `geom_aabb` repeated per world, a leading (B x envs,) axis on each; jittable."""
+    _require()
+    template = space.template
     base = put_model(template, graph_mode)
     flat, _ = flat_models(models, envs)  # the fields specialise writes, one row per world
     fields = {
@@ -110,9 +118,7 @@ def to_warp(
         if n not in _NOT_IN_WARP
     }
     fields["geom_aabb"] = _capsule_aabb(template, fields["geom_size"])
-    model = base.replace(**fields)
-
-    return model, make_worlds(template, worlds, naconmax_per_world, njmax)
+    return base.replace(**fields)
 
 
 def put_model(mj_model: mujoco.MjModel, graph_mode=None) -> mjx.Model:
@@ -144,6 +150,23 @@ def make_worlds(
     data = mjx.make_data(mj_model, impl="warp", naconmax=naconmax_per_world * worlds, njmax=njmax)
     # Data's own vmap rule batches the per-world fields and keeps the contact pool shared.
     return jax.vmap(lambda _: data)(jnp.arange(worlds))
+
+
+def where_worlds(done: jax.Array, on_true: mjx.Data, on_false: mjx.Data) -> mjx.Data:
+    """World by world, `on_true` where `done` (N,) is set, else `on_false`; the fields Warp
+    shares between worlds (the contact pool, counters) are `on_false`'s. `mjx.Data.where` does
+    this for one world inside a vmap; a flat batch of Warp data cannot be vmapped over."""
+    from mujoco.mjx._src.types import tree_path_to_attr_str
+    from mujoco.mjx.warp import types as warp_types
+
+    per_world = warp_types._BATCH_DIM["Data"]  # the fields with a leading (N,) axis
+
+    def leaf(path, a, b):
+        if not per_world.get(tree_path_to_attr_str(path), True):
+            return b
+        return jnp.where(done.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
+
+    return jax.tree_util.tree_map_with_path(leaf, on_true, on_false)
 
 
 def step_worlds(model: mjx.Model, data: mjx.Data, ctrl: jax.Array) -> mjx.Data:

@@ -5,14 +5,18 @@ Standard budget (per morphology): 10,000 training control steps (16 envs x 20-st
 is 4 physics steps of 5 ms. For each batch size B this prints:
   evals/s        B / (time of one `em.evaluate` call on B random Bad Walker bodies)
   train steps/s  PPO control steps per second, training and evaluation, over the batch
-  ppo/physics    physics steps per second inside PPO over the raw rate of the same template
+  ppo/physics    physics steps per second inside PPO over the raw rate of the same engine
                  stepping the same B x 16 worlds with no learning (the physics limit)
   one-at-a-time  the same code evaluating the bodies with B = 1, one call each (timed on up to
                  --single bodies and scaled to B); `batching gain` is its time over the batch's
+  repeat diff    the largest fitness difference between the repeated calls (same program, same
+                 keys): 0 when the engine and XLA are deterministic
 Timings exclude compilation (a warm-up call first) and are medians of --repeats calls.
+--physics names the engine (`evojax_morph.engines`); --deterministic asks XLA for deterministic
+GPU ops first, as the run command does unless --fast-gpu.
 
   python -m experiments.bench_fitness --batches 1 16                 # CPU
-  python -m experiments.bench_fitness --batches 1 16 256 1024        # GPU
+  python -m experiments.bench_fitness --batches 1 256 1024 4096 --physics warp --deterministic
 """
 
 from __future__ import annotations
@@ -22,23 +26,49 @@ import json
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 import evojax_morph as em
-from evojax_morph import ppo
-from experiments import bench_physics
+from evojax_morph import engines, ppo
 
 STANDARD = em.FitnessConfig(ppo=em.standard_ppo(10_000))
 
 
-def median_time(fn, repeats: int) -> float:
-    jax.block_until_ready(fn())  # compile and warm up
-    times = []
+def timed(fn, repeats: int) -> tuple[float, float]:
+    """(median seconds of `repeats` calls after a warm-up, largest difference between the
+    outputs of all calls)."""
+    first = np.asarray(jax.block_until_ready(fn()))  # compile and warm up
+    times, diff = [], 0.0
     for _ in range(repeats):
         start = time.perf_counter()
-        jax.block_until_ready(fn())
+        out = np.asarray(jax.block_until_ready(fn()))
         times.append(time.perf_counter() - start)
-    return float(np.median(times))
+        diff = max(diff, float(np.nanmax(np.abs(out - first))) if out.size else 0.0)
+    return float(np.median(times)), diff
+
+
+def median_time(fn, repeats: int) -> float:
+    return timed(fn, repeats)[0]
+
+
+def make_raw_physics(engine: engines.Engine, space, steps: int):
+    """jit(fn(models (B,), worlds_per_body) -> qpos): `steps` physics steps of every world of the
+    engine's flat batch with sinusoidal controls, no learning."""
+
+    def rollout(models, worlds_per_body):
+        worlds = engine.prepare(space, models, worlds_per_body)
+        n = models.body_mass.shape[0] * worlds_per_body
+        data = engine.forward(worlds, engine.make_data(worlds, space, n))
+        phase = jnp.arange(n)[:, None] + jnp.arange(space.template.nu)
+
+        def body(data, t):
+            ctrl = jnp.sin(8.0 * t * space.template.opt.timestep + phase)
+            return engine.step(worlds, data.replace(ctrl=ctrl)), None
+
+        return jax.lax.scan(body, data, jnp.arange(steps))[0].qpos
+
+    return jax.jit(rollout, static_argnums=1)
 
 
 def main():
@@ -49,11 +79,20 @@ def main():
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 16])
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--single", type=int, default=8, help="bodies timed one at a time")
+    parser.add_argument("--physics", default="jax", choices=engines.list_engines())
+    parser.add_argument("--train-steps", type=int, default=10_000)
+    parser.add_argument("--controllers", type=int, default=1)
+    parser.add_argument("--deterministic", action="store_true", help="deterministic GPU ops")
+    parser.add_argument("--out", default=None, help="append each row to this JSON-lines file")
     args = parser.parse_args()
+    if args.deterministic:
+        em.deterministic_gpu()
     jax.config.update("jax_default_matmul_precision", "highest")
 
     space = em.make_space(args.space)
-    cfg = STANDARD
+    cfg = em.FitnessConfig(
+        ppo=em.standard_ppo(args.train_steps, args.controllers), physics=args.physics
+    )
     steps = ppo.env_steps_per_morphology(cfg.task, cfg.ppo)
     frame_skip = cfg.task.frame_skip
     walk = jax.jit(jax.vmap(space.random_morphology, (0, None)), static_argnums=1)
@@ -62,7 +101,7 @@ def main():
         keys = jax.random.split(jax.random.PRNGKey(batch), batch)
         morphs = walk(keys, 3)
         evaluate = lambda: em.evaluate(space, morphs, keys, cfg).fitness  # noqa: B023  (timed now)
-        t_batch = median_time(evaluate, args.repeats)
+        t_batch, repeat_diff = timed(evaluate, args.repeats)
 
         single = min(batch, args.single)
         pick = lambda i: jax.tree.map(lambda x: x[i : i + 1], morphs)  # noqa: B023
@@ -72,18 +111,22 @@ def main():
             em.evaluate(space, pick(i), keys[i : i + 1], cfg).fitness.block_until_ready()
         t_single = (time.perf_counter() - start) / single * batch
 
-        # Raw physics at the same worlds: B bodies x num_envs worlds, no learning.
+        # Raw physics at the same worlds: B bodies x K x num_envs worlds, no learning.
         models = jax.jit(jax.vmap(space.mjx_model))(morphs)
-        data = jax.vmap(lambda m: bench_physics.broadcast_data(m, 1, cfg.ppo.num_envs)[0])(models)
-        rollout = bench_physics.make_rollout(100, batched_models=True)
-        t_phys = median_time(lambda: rollout(models, data), args.repeats)  # noqa: B023
-        physics_rate = batch * cfg.ppo.num_envs * 100 / t_phys
+        worlds = args.controllers * cfg.ppo.num_envs
+        rollout = make_raw_physics(engines.get_engine(args.physics), space, 100)
+        t_phys = median_time(lambda: rollout(models, worlds), args.repeats)  # noqa: B023
+        physics_rate = batch * worlds * 100 / t_phys
 
         train_rate = batch * steps / t_batch
         rows.append(
             {
                 "space": args.space,
+                "physics": args.physics,
                 "device": jax.devices()[0].device_kind,
+                "deterministic": args.deterministic,
+                "train_steps": args.train_steps,
+                "controllers": args.controllers,
                 "batch": batch,
                 "env_steps_per_morphology": steps,
                 "evals_per_s": batch / t_batch,
@@ -93,19 +136,25 @@ def main():
                 "one_at_a_time_s": t_single,
                 "batch_s": t_batch,
                 "batching_gain": t_single / t_batch,
+                "repeat_diff": repeat_diff,
+                "date": time.strftime("%Y-%m-%d"),
             }
         )
         print(json.dumps(rows[-1]), flush=True)
+        if args.out:
+            with open(args.out, "a") as f:
+                f.write(json.dumps(rows[-1]) + "\n")
 
     print(
         f"\n{'B':>5} {'evals/s':>9} {'steps/s':>10} {'raw phys/s':>11} {'ppo/phys':>9} "
-        f"{'1-at-a-time s':>14} {'batch s':>8} {'gain':>6}"
+        f"{'1-at-a-time s':>14} {'batch s':>8} {'gain':>6} {'repeat diff':>11}"
     )
     for r in rows:
         print(
             f"{r['batch']:>5} {r['evals_per_s']:>9.3g} {r['train_steps_per_s']:>10.3g} "
             f"{r['physics_steps_per_s_raw']:>11.3g} {r['ppo_over_physics']:>9.0%} "
-            f"{r['one_at_a_time_s']:>14.3g} {r['batch_s']:>8.3g} {r['batching_gain']:>6.1f}"
+            f"{r['one_at_a_time_s']:>14.3g} {r['batch_s']:>8.3g} {r['batching_gain']:>6.1f} "
+            f"{r['repeat_diff']:>11.3g}"
         )
 
 

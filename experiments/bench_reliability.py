@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import evojax_morph as em
-from evojax_morph import ppo
+from evojax_morph import engines, ppo
 
 # The main job's inner PPO on a GPU today (run.py: 16 envs, 20-step unrolls, 50,000 steps).
 STANDARD = em.standard_ppo(50_000)
@@ -96,25 +96,25 @@ def statistics(f: np.ndarray, k: int, aggregate: str) -> dict:
     return out
 
 
-def compiled_train(space, cfg: em.PPOConfig, batch: int):
-    """(init, train, compile seconds): `train` vmapped over bodies, compiled for `batch`."""
-    init, train = ppo.make_train(space, em.TaskConfig(), cfg)
+def compiled_train(space, cfg: em.PPOConfig, batch: int, physics: str = "jax"):
+    """(init, train, compile seconds): `train` of `batch` bodies, compiled."""
+    init, train = ppo.make_train(space, em.TaskConfig(), cfg, physics)
     keys = jax.random.split(jax.random.PRNGKey(0), batch)
     morphs = jax.vmap(space.random_morphology, (0, None))(keys, 3)
     params = jax.jit(jax.vmap(init))(keys)
     start = time.perf_counter()
-    fn = jax.jit(jax.vmap(train)).lower(keys, morphs, params).compile()
+    fn = jax.jit(train).lower(keys, morphs, params).compile()
     return jax.jit(jax.vmap(init)), fn, time.perf_counter() - start
 
 
 def landscape_fitness(
-    space, cfg: em.PPOConfig, seeds: int, batch: int
+    space, cfg: em.PPOConfig, seeds: int, batch: int, physics: str = "jax"
 ) -> tuple[np.ndarray, float, list]:
     """(bodies, seeds) single-controller fitness of every body, its seconds (compile excluded)."""
     bodies, _ = space.enumerate_bodies()
     jobs = [(b, s) for b in range(len(bodies)) for s in range(seeds)]
     batch = min(batch, len(jobs))
-    init, train, _ = compiled_train(space, cfg, batch)
+    init, train, _ = compiled_train(space, cfg, batch, physics)
     fitness = np.zeros((len(bodies), seeds))
     seconds = 0.0
     for start in range(0, len(jobs), batch):
@@ -133,10 +133,12 @@ def landscape_fitness(
     return fitness, seconds, [space.canonical(m) for m in bodies]
 
 
-def cost(space, cfg: em.PPOConfig, k: int, batch: int, repeats: int) -> dict:
+def cost(
+    space, cfg: em.PPOConfig, k: int, batch: int, repeats: int, physics: str = "jax"
+) -> dict:
     """Seconds per evaluation of one call on `batch` random bodies with k controllers each."""
     cfg = dataclasses.replace(cfg, controllers=k)
-    init, train, compile_s = compiled_train(space, cfg, batch)
+    init, train, compile_s = compiled_train(space, cfg, batch, physics)
     keys = jax.random.split(jax.random.PRNGKey(1), batch)
     morphs = jax.vmap(space.random_morphology, (0, None))(keys, 3)
     params = init(keys)
@@ -249,18 +251,26 @@ def main(argv=None):
         "--train-steps", type=int, default=None, help="with --cost-only: the budget"
     )
     parser.add_argument("--out", default="runs/reliability")
+    parser.add_argument("--space", default="bad_walker", help="an enumerable space")
+    parser.add_argument("--physics", default="jax", choices=engines.list_engines())
+    parser.add_argument("--deterministic", action="store_true", help="deterministic GPU ops")
     args = parser.parse_args(argv)
+    if args.deterministic:
+        em.deterministic_gpu()
     jax.config.update("jax_default_matmul_precision", "highest")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    space = em.make_space("bad_walker")
+    space = em.make_space(args.space)
+    # Bad Walker on the JAX engine keeps the old file names; anything else is named apart.
+    default = (args.space, args.physics) == ("bad_walker", "jax")
+    suffix = "" if default else f"_{args.space}_{args.physics}"
     device = jax.devices()[0].device_kind
     for name in args.variants:
         cfg = dataclasses.replace(STANDARD, **VARIANTS[name])
         if args.cost_only:
             cfg = dataclasses.replace(cfg, train_steps=args.train_steps or cfg.train_steps)
-            for k in args.cost_ks or args.ks:
-                c = cost(space, cfg, k, args.cost_batch, args.repeats)
+            for k in (args.ks if args.cost_ks is None else args.cost_ks):
+                c = cost(space, cfg, k, args.cost_batch, args.repeats, args.physics)
                 print(
                     f"{name} at {cfg.train_steps} steps, K={k}, {args.cost_batch} bodies on "
                     f"{device}: "
@@ -269,20 +279,25 @@ def main(argv=None):
                     flush=True,
                 )
             continue
-        path = out / f"reliability_{name}.json"
+        path = out / f"reliability_{name}{suffix}.json"
         settings = {"ppo": dataclasses.asdict(cfg), "seeds": args.seeds, "device": device}
+        if suffix:
+            settings.update(space=args.space, physics=args.physics)
         if path.exists() and json.loads(path.read_text())["settings"] == settings:
             print(f"{name}: already in {path}", flush=True)
             continue
-        fitness, seconds, keys = landscape_fitness(space, cfg, args.seeds, args.batch)
+        fitness, seconds, keys = landscape_fitness(
+            space, cfg, args.seeds, args.batch, args.physics
+        )
         stats = [
             statistics(fitness, k, agg) for agg in AGGREGATES for k in args.ks if k <= args.seeds
         ]
         costs = [
-            cost(space, cfg, k, args.cost_batch, args.repeats) for k in (args.cost_ks or args.ks)
+            cost(space, cfg, k, args.cost_batch, args.repeats, args.physics)
+            for k in (args.ks if args.cost_ks is None else args.cost_ks)
         ]
         result = {
-            "variant": name,
+            "variant": name + suffix,
             "settings": settings,
             "landscape_seconds": seconds,
             "evaluations": fitness.size,

@@ -72,9 +72,9 @@ def main(argv=None):
     space = em.make_space("bad_walker")
     cfg = dataclasses.replace(STANDARD, **VARIANTS[args.variant], controllers=args.controllers)
     init, train = ppo.make_train(space, em.TaskConfig(), cfg)
-    train, init = jax.jit(jax.vmap(train)), jax.jit(jax.vmap(init))
+    train, init = jax.jit(train), jax.jit(jax.vmap(init))
     _, evaluate = ppo.make_train(space, em.TaskConfig(), dataclasses.replace(cfg, train_steps=0))
-    evaluate = jax.jit(jax.vmap(evaluate))
+    evaluate = jax.jit(evaluate)
     named = pairs(space)
     n, s = len(named), args.seeds
     parents = em.stack([p for p, _ in named.values() for _ in range(s)])

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import evojax_morph as em
-from evojax_morph import run
+from evojax_morph import engines, run
 
 TINY = [
     "--space",
@@ -54,6 +54,22 @@ def test_unwritable_out_and_missing_resume(capsys, tmp_path):
     assert e.value.code == 2 and "no run in" in capsys.readouterr().err
 
 
+def test_physics_that_cannot_run_exits_with_2(monkeypatch, capsys, tmp_path):
+    """--physics warp where Warp cannot run: exit 2 with the engine's own reason, nothing
+    written; "auto" on a CPU takes the JAX engine."""
+    cannot = engines.WARP._replace(available=lambda: (False, "warp-lang is not installed"))
+    monkeypatch.setitem(engines._REGISTRY, "warp", cannot)
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as e:
+        run.main(["--space", "bad_walker", "--physics", "warp", "--out", str(out)])
+    assert e.value.code == 2
+    assert "the warp physics cannot run here: warp-lang is not installed" in capsys.readouterr().err
+    assert not out.exists()
+    assert engines.resolve("auto")[0] == "jax"  # the tests run on the CPU backend
+    with pytest.raises(ValueError, match="unknown physics 'mujoco'"):
+        em.FitnessConfig(physics="mujoco")
+
+
 def test_resume_matches_an_uninterrupted_run(tmp_path):
     straight, split = tmp_path / "straight", tmp_path / "split"
     assert run.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(straight)]) == 0
@@ -65,6 +81,7 @@ def test_resume_matches_an_uninterrupted_run(tmp_path):
     assert run.main(TINY + ["--steps", "9", "--out", str(split), "--resume"]) == 0
     a, b = (json.loads((d / "summary.json").read_text()) for d in (straight, split))
     assert a == b
+    assert json.loads((split / "config.json").read_text())["physics"] == "jax"  # auto on a CPU
     assert (straight / "metrics.csv").read_text() == (split / "metrics.csv").read_text()
     import orbax.checkpoint as ocp
 

@@ -45,13 +45,13 @@ def trained(walker):
     chex.clear_trace_counter()
     init, train = ppo.make_train(walker, CFG.task, CFG.ppo)
     _, evaluate = ppo.make_train(walker, EVAL_ONLY.task, EVAL_ONLY.ppo)
-    evaluate = jax.jit(jax.vmap(chex.assert_max_traces(evaluate, n=1)))
+    evaluate = jax.jit(chex.assert_max_traces(evaluate, n=1))
     child = walker.mutate(walker.optimum(), bw.FRONT, 2)  # front foot one site inward
     keys = jax.random.split(jax.random.PRNGKey(0), 2 * SEEDS)
     fresh = jax.jit(jax.vmap(init))(keys)
     gen1 = em.stack([walker.optimum()] * SEEDS + [footless(walker)] + [child] * (SEEDS - 1))
     first = lambda tree: jax.tree.map(lambda x: x[: SEEDS + 2], tree)  # noqa: E731
-    out1 = jax.jit(jax.vmap(train))(keys[: SEEDS + 2], first(gen1), first(fresh))
+    out1 = jax.jit(train)(keys[: SEEDS + 2], first(gen1), first(fresh))
     return gen1, keys, out1, fresh, child, evaluate
 
 
@@ -116,6 +116,21 @@ def test_batch_equals_one_at_a_time(walker, trained):
         np.testing.assert_allclose(one.fitness[0], batch.fitness[i], rtol=1e-2, atol=0.05)
         np.testing.assert_allclose(one.fitness_std[0], batch.fitness_std[i], rtol=1e-2, atol=0.05)
     assert len(set(np.round(np.asarray(batch.fitness), 3))) > 2  # different bodies, different results
+
+
+def test_flat_world_batch_equals_one_world_at_a_time(walker, trained):
+    """The fitness steps every world of every body as one flat batch; it scores a controller as
+    the path of one body and one world at a time does (`ppo.make_evaluate`, which replays use):
+    same keys, untrained controllers, equal to rounding (tolerance as in the test above)."""
+    gen1, keys, _, fresh, _, evaluate = trained
+    batch = evaluate(keys, gen1, fresh)
+    one = jax.jit(ppo.make_evaluate(walker, EVAL_ONLY.task, EVAL_ONLY.ppo))
+    for i in (0, SEEDS, 2 * SEEDS - 1):
+        pick = lambda tree: jax.tree.map(lambda x: x[i], tree)  # noqa: B023
+        eval_key = jax.random.split(keys[i])[0]  # what train keeps for the evaluation
+        returns, _ = one(eval_key, walker.mjx_model(pick(gen1)), pick(fresh))
+        np.testing.assert_allclose(batch.fitness[i], returns.mean(), rtol=1e-2, atol=0.05)
+        np.testing.assert_allclose(batch.fitness_std[i], returns.std(), rtol=1e-2, atol=0.05)
 
 
 def test_k_controllers_are_k_independent_runs(walker, trained):

@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from evojax_morph.engines import list_engines
 from evojax_morph.locomotion import TaskConfig
 from evojax_morph.ppo import Params, PPOConfig
 from evojax_morph.spaces import Space
@@ -26,14 +27,21 @@ class FitnessConfig:
     task: the locomotion task the PPO controller learns.
     ppo: the inner PPO's settings and budget.
     classifier: for "tame", the directory of a classifier saved by `python -m evojax_morph.tame`.
+    physics: the engine that steps the worlds of the kinds that simulate ("jax" or "warp",
+      `evojax_morph.engines`; the CLI resolves its "auto" before it gets here).
     """
 
     kind: str = "ppo"
     task: TaskConfig = TaskConfig()
     ppo: PPOConfig = PPOConfig()
     classifier: str = ""
+    physics: str = "jax"
 
     def __post_init__(self):
+        if self.physics not in list_engines():
+            raise ValueError(
+                f"unknown physics {self.physics!r}; choose one of {', '.join(list_engines())}"
+            )
         get_fitness(self.kind).validate(self)
 
     def to_dict(self) -> dict:
@@ -44,7 +52,7 @@ class FitnessConfig:
     def from_dict(cls, d: dict) -> FitnessConfig:
         tuples = lambda c: {k: tuple(v) if isinstance(v, list) else v for k, v in c.items()}
         return cls(kind=d["kind"], task=TaskConfig(**d["task"]), ppo=PPOConfig(**tuples(d["ppo"])),
-                   classifier=d["classifier"])
+                   classifier=d["classifier"], physics=d.get("physics", "jax"))
 
 
 @struct.dataclass
@@ -75,12 +83,15 @@ class Fitness(NamedTuple):
       None for a kind without controllers; evaluate(keys (B,), morphs (B, ...), params (B, ...)
       or None) -> FitnessResult of (B,) arrays: pure, batched and jittable (the callers split
       the batch across devices and jit it).
+    trains_controllers: whether its results carry trained controllers worth keeping (saved with
+      the bodies, replayed by `render`).
     """
 
     name: str
     validate: Callable[[FitnessConfig], None]
     scale: Callable[[Space], float]
     make: Callable[[Space, FitnessConfig], tuple[Callable | None, Callable]]
+    trains_controllers: bool = False
 
 
 _REGISTRY: dict[str, Fitness] = {}

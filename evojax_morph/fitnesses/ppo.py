@@ -2,6 +2,8 @@
 
 Training starts from the controller it is given (a parent's: policy inheritance); the fitness is
 the mean return of the deterministic evaluation episodes after training (`evojax_morph.ppo`).
+Every world of a fitness call (bodies x controllers x envs) steps as one flat batch on the engine
+`FitnessConfig.physics` names (`evojax_morph.engines`).
 """
 
 from __future__ import annotations
@@ -27,11 +29,11 @@ def validate(cfg: FitnessConfig) -> None:
 
 
 def make(space: Space, cfg: FitnessConfig):
-    init, train = ppo.make_train(space, cfg.task, cfg.ppo)
+    init, train = ppo.make_train(space, cfg.task, cfg.ppo, cfg.physics)
     env_steps = ppo.env_steps_per_morphology(cfg.task, cfg.ppo)
 
     def evaluate(keys: jax.Array, morphs, params: ppo.Params) -> FitnessResult:
-        out = jax.vmap(train)(keys, morphs, params)
+        out = train(keys, morphs, params)
         return FitnessResult(
             fitness=out.fitness,
             fitness_std=out.fitness_std,
@@ -45,4 +47,6 @@ def make(space: Space, cfg: FitnessConfig):
     return init, evaluate
 
 
-FITNESS = Fitness(name="ppo", validate=validate, scale=lambda space: 100.0, make=make)
+FITNESS = Fitness(
+    name="ppo", validate=validate, scale=lambda space: 100.0, make=make, trains_controllers=True
+)

@@ -16,6 +16,8 @@ from evojax_morph.tame import Pretrained, Tame, over_bodies
 
 
 def validate(cfg: FitnessConfig) -> None:
+    if cfg.physics != "jax":
+        raise ValueError(f"the tame fitness runs on the JAX engine only, not {cfg.physics!r}")
     if not cfg.classifier:
         raise ValueError(
             "the tame fitness needs classifier= the directory of a trained TAME classifier "

@@ -1,0 +1,164 @@
+"""Physics engines by name: how a flat batch of worlds of different bodies is stepped.
+
+A fitness call simulates B bodies x W worlds each (K controllers x E envs for the PPO fitness)
+as ONE flat batch of N = B x W worlds, world `w = b * W + i` being world i of body b. An engine
+says how that batch is made and stepped:
+
+* "jax": MJX's JAX engine. The B specialised models stay a (B,) batch and a step is a vmap over
+  bodies around a vmap over each body's W worlds (the model shared by its worlds).
+* "warp": MuJoCo Warp through MJX (`evojax_morph.warp`): the fields that differ per body are
+  repeated per world and Warp steps the N worlds in one kernel launch per stage. Float32, a GPU
+  (or, slowly, the CPU), and `pip install 'evojax_morph[warp]'`.
+
+`physics="auto"` (the CLI's default) takes Warp where it can run on a GPU and JAX elsewhere.
+Warp's data keeps its contact pool shared by every world, so the data of a flat batch is never
+vmapped over: reset, step and select (`where`) are this module's, on the whole batch.
+
+  engine = get_engine("jax")
+  worlds = engine.prepare(space, models, W)          # models: (B,) from space.mjx_model
+  data = engine.forward(worlds, engine.make_data(worlds, space, B * W))
+  data = engine.step(worlds, data.replace(ctrl=ctrl))   # ctrl: (B * W, nu)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from evojax_morph.morphology import tree_select
+from evojax_morph.physics import mjx
+from evojax_morph.spaces import Space
+
+
+class Engine(NamedTuple):
+    """A physics engine for flat batches of worlds, registered by name.
+
+    available() -> (ok, reason): whether it can run here, and why not.
+    prepare(space, models, worlds_per_body) -> worlds: what `step` needs of B specialised
+      bodies (`space.mjx_model`, leaves with a leading (B,) axis), each simulated in
+      `worlds_per_body` worlds; a pytree, jittable.
+    make_data(worlds, space, n) -> (n,) data at qpos0 (n = B x worlds_per_body).
+    step(worlds, data) -> data one physics step later; forward(worlds, data) -> data with
+      positions and velocities propagated (after a reset).
+    where(done, on_true, on_false) -> data: world by world, `on_true` where done (n,) is set.
+    """
+
+    name: str
+    available: Callable[[], tuple[bool, str]]
+    prepare: Callable[[Space, mjx.Model, int], Any]
+    make_data: Callable[[Any, Space, int], mjx.Data]
+    step: Callable[[Any, mjx.Data], mjx.Data]
+    forward: Callable[[Any, mjx.Data], mjx.Data]
+    where: Callable[[jax.Array, mjx.Data, mjx.Data], mjx.Data]
+
+
+def _per_body(fn):
+    """`fn(model, data)` of one world, over (B,) models and (B x W,) data: nested vmaps."""
+
+    def batched(models: mjx.Model, data: mjx.Data) -> mjx.Data:
+        bodies, worlds = models.body_mass.shape[0], data.qpos.shape[0]
+        split = jax.tree.map(lambda x: x.reshape((bodies, worlds // bodies) + x.shape[1:]), data)
+        out = jax.vmap(jax.vmap(fn, (None, 0)))(models, split)
+        return jax.tree.map(lambda x: x.reshape((worlds,) + x.shape[2:]), out)
+
+    return batched
+
+
+def _jax_make_data(models: mjx.Model, space: Space, n: int) -> mjx.Data:
+    del space
+    one = mjx.make_data(jax.tree.map(lambda x: x[0], models))
+    return jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), one)
+
+
+JAX = Engine(
+    name="jax",
+    available=lambda: (True, ""),
+    prepare=lambda space, models, worlds_per_body: models,
+    make_data=_jax_make_data,
+    step=_per_body(mjx.step),
+    forward=_per_body(mjx.forward),
+    where=lambda done, on_true, on_false: tree_select(done, on_true, on_false),
+)
+
+
+def _warp_available() -> tuple[bool, str]:
+    from evojax_morph import warp
+
+    return warp.available()
+
+
+def _warp_prepare(space: Space, models: mjx.Model, worlds_per_body: int):
+    from evojax_morph import warp
+
+    return warp.world_model(space, models, worlds_per_body)
+
+
+def _warp_make_data(model, space: Space, n: int) -> mjx.Data:
+    from evojax_morph import warp
+
+    del model
+    return warp.make_worlds(space.template, n)
+
+
+def _warp_where(done: jax.Array, on_true: mjx.Data, on_false: mjx.Data) -> mjx.Data:
+    from evojax_morph import warp
+
+    return warp.where_worlds(done, on_true, on_false)
+
+
+_flat = lambda fn: lambda model, data: jax.vmap(fn, (None, 0))(model, data)
+
+WARP = Engine(
+    name="warp",
+    available=_warp_available,
+    prepare=_warp_prepare,
+    make_data=_warp_make_data,
+    step=_flat(mjx.step),
+    forward=_flat(mjx.forward),
+    where=_warp_where,
+)
+
+_REGISTRY: dict[str, Engine] = {e.name: e for e in (JAX, WARP)}
+AUTO = "auto"
+
+
+def list_engines() -> list[str]:
+    """Names accepted by `get_engine` and `FitnessConfig.physics` ("auto" is resolved first)."""
+    return list(_REGISTRY)
+
+
+def get_engine(name: str) -> Engine:
+    """The engine `name`; a ValueError for an unknown name, a RuntimeError with the reason for
+    one that cannot run here."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown physics {name!r}; choose one of {', '.join(list_engines())}")
+    engine = _REGISTRY[name]
+    ok, reason = engine.available()
+    if not ok:
+        raise RuntimeError(f"the {name} physics cannot run here: {reason}")
+    return engine
+
+
+def resolve(name: str) -> tuple[str, str]:
+    """`(engine, why)`: "auto" becomes "warp" where Warp can run on a GPU, else "jax" (with the
+    reason); any other name is checked (`get_engine`) and returned as it is."""
+    if name != AUTO:
+        get_engine(name)
+        return name, "asked for"
+    if jax.default_backend() != "gpu":
+        return "jax", f"no GPU ({jax.default_backend()})"
+    ok, reason = WARP.available()
+    return ("warp", "a GPU with MuJoCo Warp") if ok else ("jax", reason)
+
+
+def repeat_worlds(tree, worlds_per_body: int):
+    """Every leaf's leading (B,) axis repeated to (B x worlds_per_body,): world b x W + i gets
+    body b's row."""
+    return jax.tree.map(lambda x: jnp.repeat(x, worlds_per_body, axis=0), tree)
+
+
+__all__ = ["AUTO", "Engine", "JAX", "WARP", "get_engine", "list_engines", "repeat_worlds",
+           "resolve"]
