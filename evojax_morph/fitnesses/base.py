@@ -22,16 +22,21 @@ class FitnessConfig:
     kind: a registered fitness (`list_fitnesses()`): "ppo" (the return of a controller trained
       with PPO on the body, NGE-style), "predefined" (the space's hand-crafted deterministic
       fitness) or "tame" (task-agnostic: how well random motor primitives can be told apart
-      from where they leave the body, with a pre-trained classifier; see `evojax_morph.tame`).
+      from where they leave the body, with a pre-trained classifier; see `evojax_morph.tame`)
+      or "table" (the mean of `ppo.controllers` stored PPO results of the body, drawn from a
+      landscape table; no controllers, no inheritance; see `fitnesses.table`).
     task: the locomotion task the PPO controller learns.
     ppo: the inner PPO's settings and budget.
     classifier: for "tame", the directory of a classifier saved by `python -m evojax_morph.tame`.
+    table: for "table", the .npz of a table built by `python -m experiments.build_tables`;
+      "" for the space's packaged table (`evojax_morph/tables/SPACE.npz`).
     """
 
     kind: str = "ppo"
     task: TaskConfig = TaskConfig()
     ppo: PPOConfig = PPOConfig()
     classifier: str = ""
+    table: str = ""
 
     def __post_init__(self):
         get_fitness(self.kind).validate(self)
@@ -44,7 +49,7 @@ class FitnessConfig:
     def from_dict(cls, d: dict) -> FitnessConfig:
         tuples = lambda c: {k: tuple(v) if isinstance(v, list) else v for k, v in c.items()}
         return cls(kind=d["kind"], task=TaskConfig(**d["task"]), ppo=PPOConfig(**tuples(d["ppo"])),
-                   classifier=d["classifier"])
+                   classifier=d["classifier"], table=d.get("table", ""))
 
 
 @struct.dataclass
