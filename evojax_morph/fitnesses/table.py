@@ -238,7 +238,9 @@ def make(space: Space, cfg: FitnessConfig):
     def one(key: jax.Array, m: Morphology):
         hit = (sigs == signature(m)).all(-1)  # (T,)
         row = jnp.argmax(hit)
-        draws = jax.random.choice(key, seeds, (k,), replace=False)
+        # k distinct results: the k largest of S uniforms (10x faster than random.choice's
+        # permutation on the CPU)
+        draws = jax.lax.top_k(jax.random.uniform(key, (seeds,)), k)[1]
         values = fitness[row, draws]
         found = hit.any()
         nan = jnp.float32(jnp.nan)
