@@ -7,6 +7,7 @@ import re
 
 import chex
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from test_spaces import reachable_batched
@@ -106,6 +107,13 @@ def test_missing_bodies_are_errors_naming_them(walker, tmp_path, monkeypatch):
     with pytest.raises(Exception, match=missing):
         jax.block_until_ready(em.evaluate(space, em.stack([bodies[0], odd]),
                                           jax.random.PRNGKey(0), config(tmp_path / "t.npz")))
+    _, evaluate = get_fitness("table").make(space, config(tmp_path / "t.npz"))
+    vmapped = jax.jit(jax.vmap(lambda k, m: evaluate(k, m, None).fitness))  # over seeds too
+    pairs = jax.tree.map(lambda *x: jnp.stack(x), em.stack([bodies[0]] * 2),
+                         em.stack([bodies[1], odd]))
+    with pytest.raises(Exception, match=missing):
+        jax.block_until_ready(vmapped(jax.random.split(jax.random.PRNGKey(0), 4).reshape(2, 2, -1),
+                                      pairs))
     # a table without a body reachable from m0 is refused when the fitness is made
     synthetic(walker, tmp_path / "gap.npz", drop=len(names) - 1)
     with pytest.raises(ValueError, match=re.escape(f"lacks body {names[-1]}")):
@@ -145,11 +153,12 @@ def test_an_agent_runs_on_the_table(walker, tmp_path):
     table = synthetic(walker, tmp_path / "t.npz")
     p = build(RunConfig(space="bad_walker", fitness="table", table=str(tmp_path / "t.npz"),
                         agent="qrdqn", num_envs=4, horizon=3, controllers=2, learning_starts=4))
-    state = p.agent.init(jax.random.PRNGKey(0))
-    state, metrics = p.agent.chunk(state, 5)
+    seeds = jax.vmap(jax.random.PRNGKey)(jnp.arange(2))  # vmapped over seeds, as experiments do
+    states = jax.jit(jax.vmap(p.agent.init))(seeds)
+    _, metrics = jax.jit(jax.vmap(lambda s: p.agent.chunk(s, 5)))(states)
     bodies = jax.device_get(metrics["bodies"])
-    fitness = np.asarray(metrics["fitness"]).reshape(-1)
-    morphs = em.unstack(jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), bodies["morph"]))
+    fitness = np.asarray(metrics["fitness"]).reshape(-1)  # (2 seeds x 5 steps x 4 envs,)
+    morphs = em.unstack(jax.tree.map(lambda x: x.reshape((-1,) + x.shape[3:]), bodies["morph"]))
     rows = np.array([names.index(space.canonical(m)) for m in morphs])
     np.testing.assert_array_equal(np.floor(fitness / 1000), rows)
     assert np.isin(np.round((fitness - 1000 * rows) * 2),
