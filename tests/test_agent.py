@@ -177,8 +177,8 @@ def test_qrdqn_greedy_policy_learns_the_predefined_fitness():
     (3 of its 90 bodies reach 1.8; m0 has 0.67, the best 2)."""
     final, optimum = greedy_final(range(12), "qrdqn", QR_CFG)
     # Measured on 2 CPU cores (jax 0.10.2): the best body in 12 of these 12 seeds; over seeds
-    # 100-129, in 27 of 30,
-    # the other 3 at 1.83 (one site short), so every 12-seed bootstrap median is 2.0. Below
+    # 100-129 in 27 of 30, the other 3 at 1.83 (one site short), so every 12-seed bootstrap
+    # median of those 30 is 2.0. Below
     # 1.8 would need 6 of 12 seeds ending outside the top 3 bodies (0 of 30 did); under 6 of
     # 12 finding the best has a chance of 5e-5 at the measured 0.9 rate, 0.018 at 0.74 (the
     # rate's 95% lower bound). The command: PYTHONPATH=.:tests python -c "import conftest;
