@@ -119,15 +119,16 @@ def build(args) -> tables.Table:
         for i, (k, s) in enumerate(part):
             table.fitness[k, s], table.diverged[k, s] = fitness[i], diverged[i]
         device = jax.devices()[0]
+        device = f"{device.platform}: {device.device_kind} x {jax.device_count()}"
         table.meta.update(
-            device=f"{device.platform}: {device.device_kind} x {jax.device_count()}",
+            device=device,  # the last batch's; each batch records its own below
             date=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
             revision=revision(),
             jax=jax.__version__,
             seconds=table.meta["seconds"] + seconds,
             command="python -m experiments.build_tables " + " ".join(args.argv),
         )
-        table.meta["batches"].append({"results": len(part), "batch": batch,
+        table.meta["batches"].append({"results": len(part), "batch": batch, "device": device,
                                       "seconds": round(seconds, 2)})
         table.save(out)
         print(f"batch {n + 1}: {len(part)} results in {seconds:.1f} s, "
