@@ -27,19 +27,20 @@ class RunConfig:
     """Everything that defines a run; saved as config.json, reloaded by --resume."""
 
     space: str = "bad_walker"
-    fitness: str = "ppo"  # a registered fitness kind: ppo | predefined | tame
+    fitness: str = "ppo"  # a registered fitness kind: ppo | predefined | tame | table
     classifier: str = ""  # tame: directory of the trained classifier
-    agent: str = "ddqn"  # a registered agent: ddqn | a2c | random | evolution
+    table: str = ""  # table: the landscape table (.npz); "": the space's packaged one
+    agent: str = "ddqn"  # a registered agent: ddqn | qrdqn | a2c | random | evolution
     steps: int = 40  # environment steps; each mutates every parallel evolution once
     seed: int = 0
     num_envs: int = 4  # parallel evolutions, each step's fitness batch
     horizon: int = 0  # mutations per episode; 0: the space's default_horizon
     train_steps: int = 10_000  # PPO control steps per fitness evaluation (per controller)
-    controllers: int = 1  # independent PPO controllers per body; the fitness is their mean
+    controllers: int = 1  # independent PPO controllers per body (table: draws); their mean
     physics: str = "jax"  # the engine of the fitness's worlds: jax | warp (`engines`)
     hidden: int = 64  # GNN width
-    explore_steps: int = 20  # ddqn: environment steps over which epsilon anneals from 1 to 0.05
-    learning_starts: int = 32  # ddqn: transitions stored before the Q-network learns
+    explore_steps: int = 20  # (qr)dqn: environment steps over which epsilon anneals to 0.05
+    learning_starts: int = 32  # (qr)dqn: transitions stored before the Q-network learns
     chunk: int = 5  # environment steps per jitted call
     checkpoint_every: int = 1  # chunks between checkpoints
 
@@ -64,7 +65,7 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     """
     space = make_space(cfg.space)
     fit_cfg = FitnessConfig(kind=cfg.fitness, ppo=standard_ppo(cfg.train_steps, cfg.controllers),
-                            classifier=cfg.classifier, physics=cfg.physics)
+                            classifier=cfg.classifier, physics=cfg.physics, table=cfg.table)
     init_fn, fitness_fn = make_fitness_fn(space, fit_cfg, mesh)
     horizon = cfg.horizon or space.default_horizon
     env = EvolutionEnv(space, fitness_fn, init_fn, horizon=horizon, num_envs=cfg.num_envs)

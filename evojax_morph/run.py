@@ -23,6 +23,7 @@ from evojax_morph import agents, driver
 from evojax_morph.determinism import deterministic_gpu
 from evojax_morph.engines import AUTO, list_engines, resolve
 from evojax_morph.fitnesses import list_fitnesses
+from evojax_morph.fitnesses.table import default_path as default_table
 from evojax_morph.pipeline import RunConfig
 from evojax_morph.sharding import barrier, init_distributed
 from evojax_morph.spaces import list_spaces
@@ -103,7 +104,14 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         choices=list_fitnesses(),
         help="ppo: return of a controller trained with PPO on the body (inherited from the "
         "parent); predefined: the space's hand-crafted fitness; tame: task-agnostic, with "
-        "--classifier",
+        "--classifier; table: the mean of --controllers stored PPO results of the body, drawn "
+        "from a landscape table (no controllers, no inheritance; --table)",
+    )
+    add(
+        "--table",
+        default="",
+        help="table: the landscape table (.npz) built by `python -m experiments.build_tables` "
+        "(default: the space's packaged one, evojax_morph/tables/SPACE.npz)",
     )
     add(
         "--classifier",
@@ -114,7 +122,8 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         "--agent",
         default=defaults.agent,
         choices=agents.list_agents(),
-        help="who chooses the mutations: ddqn (Double-DQN), a2c (actor-critic), or the baselines "
+        help="who chooses the mutations: ddqn (Double-DQN), qrdqn (quantile-regression DQN), a2c "
+        "(actor-critic), or the baselines "
         "random (random mutation walks) and evolution (a population, random mutations, the "
         "fittest survive)",
     )
@@ -176,13 +185,13 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         "--explore-steps",
         type=int,
         default=defaults.explore_steps,
-        help="ddqn: environment steps of epsilon annealing",
+        help="ddqn, qrdqn: environment steps of epsilon annealing",
     )
     add(
         "--learning-starts",
         type=int,
         default=defaults.learning_starts,
-        help="ddqn: transitions stored before learning",
+        help="ddqn, qrdqn: transitions stored before learning",
     )
     add(
         "--chunk",
@@ -237,6 +246,14 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
                 f"the classifier in {args.classifier!r} was trained on another space than "
                 f"{args.space}"
             )
+    if args.fitness == "table" and not args.resume:
+        table = Path(args.table) if args.table else default_table(args.space)
+        if not table.is_file():
+            parser.error(
+                f"--fitness table: no table at {str(table)!r}; build one with `python -m "
+                f"experiments.build_tables --space {args.space} --out PATH` and pass --table PATH"
+            )
+
     def physics(name: str, fitness: str) -> str:
         """The engine `name` resolves to ("auto"), checked: exit 2 with the reason if it cannot
         run here."""
@@ -254,7 +271,8 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         args.physics = physics(args.physics, args.fitness)
     cfg = RunConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(RunConfig)})
     classifier = str(Path(args.classifier).resolve()) if args.classifier else ""
-    cfg = dataclasses.replace(cfg, classifier=classifier)
+    table = str(Path(args.table).resolve()) if args.table else ""
+    cfg = dataclasses.replace(cfg, classifier=classifier, table=table)
     out = Path(args.out) if args.out else driver.fresh_run_dir(cfg)
     try:
         out.mkdir(parents=True, exist_ok=True)

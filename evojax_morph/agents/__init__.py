@@ -19,7 +19,7 @@ import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
-from evojax_morph.agents import a2c, baselines, dqn
+from evojax_morph.agents import a2c, baselines, dqn, qrdqn
 from evojax_morph.agents.base import Agent, AgentState, Policy, RunOptions, Transition, from_policy
 from evojax_morph.evolution import EvolutionEnv
 
@@ -33,6 +33,7 @@ class AgentKind(NamedTuple):
 
 _REGISTRY: dict[str, AgentKind] = {
     "ddqn": AgentKind(dqn.DQNConfig, dqn.make_policy),
+    "qrdqn": AgentKind(qrdqn.QRDQNConfig, qrdqn.make_policy),
     "a2c": AgentKind(a2c.A2CConfig, a2c.make_policy),
     "random": AgentKind(None, baselines.make_policy),
     "evolution": AgentKind(None, functools.partial(baselines.make_policy, selection=True)),

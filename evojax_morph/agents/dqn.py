@@ -2,7 +2,9 @@
 
 Acts epsilon-greedily over valid actions, stores every transition in a ring buffer inside the
 jitted state and takes `updates_per_step` minibatch steps per environment step; the shared loop
-(`agents.base`) does the rest.
+(`agents.base`) does the rest. The network (`q_network`) and the replay learning
+(`replay_policy`) are shared with QR-DQN (`agents.qrdqn`), which changes only the outputs per
+action and the loss.
 """
 
 from __future__ import annotations
@@ -89,28 +91,51 @@ def epsilon(cfg: DQNConfig, step) -> jax.Array:
     return cfg.epsilon_start + frac * (cfg.epsilon_end - cfg.epsilon_start)
 
 
-def make_policy(env: EvolutionEnv, cfg: DQNConfig) -> Policy:
-    """Double-DQN's acting and learning; scores are the Q-values."""
-    space = env.space
-    net = TreeGNN(hidden=cfg.hidden, layers=cfg.layers, out_size=space.num_mutations)
+def q_network(space, cfg: DQNConfig, outputs: int = 1):
+    """The GNN over the tree with `outputs` values per action (1: a Q-value; QR-DQN: its
+    quantiles), read off a shared per-node head.
+
+    Returns:
+      (init, apply): init(key, obs) -> params, from an (N, ...) observation;
+      apply(params, obs) -> (N, num_actions, outputs), action `node * num_mutations + mutation`.
+    """
+    net = TreeGNN(hidden=cfg.hidden, layers=cfg.layers, out_size=space.num_mutations * outputs)
     num_kinds, num_sites = len(space.kind_names), len(space.site_names)
+
+    def one(params, morph, progress):
+        feats = node_features(morph, progress, num_kinds, num_sites)
+        out, _ = net.apply(params, morph, feats)
+        return out.reshape(-1, outputs)  # (max_nodes * num_mutations, outputs)
+
+    def apply(params, obs: Observation) -> jax.Array:
+        return jax.vmap(one, (None, 0, 0))(params, obs.morph, obs.progress)
+
+    def init(key: jax.Array, obs: Observation) -> dict:
+        single = jax.tree.map(lambda x: x[0], obs)
+        return net.init(key, single.morph, node_features(single.morph, single.progress,
+                                                         num_kinds, num_sites))
+
+    return init, apply
+
+
+def replay_policy(env: EvolutionEnv, cfg: DQNConfig, init_net, values_fn, loss_fn) -> Policy:
+    """Acting and learning of a Q-learning agent with a target network and a replay buffer.
+
+    Args:
+      env: the environment (its observations size the buffer).
+      cfg: the DQN settings (a `DQNConfig` or a subclass).
+      init_net: init_net(key, obs) -> the network's params (`q_network`).
+      values_fn: values_fn(params, obs) -> (N, num_actions) action values: acting is
+        epsilon-greedy on their masked argmax, and they are the agent's scores.
+      loss_fn: loss_fn(params, target_params, batch) -> () loss of a minibatch
+        (obs, action, reward, next_obs, terminal), each with a leading (batch_size,) axis.
+    """
     optimizer = optax.chain(
         optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate)
     )
 
-    def q_one(params, morph, progress):
-        feats = node_features(morph, progress, num_kinds, num_sites)
-        q, _ = net.apply(params, morph, feats)
-        return q.reshape(-1)  # (max_nodes * num_mutations,)
-
-    def q_fn(params, obs: Observation) -> jax.Array:
-        """(N, num_actions) Q-values of a batch of observations."""
-        return jax.vmap(q_one, (None, 0, 0))(params, obs.morph, obs.progress)
-
     def init(keys: jax.Array, obs: Observation) -> DQNLearner:
-        single = jax.tree.map(lambda x: x[0], obs)
-        feats = node_features(single.morph, single.progress, num_kinds, num_sites)
-        params = net.init(keys[0], single.morph, feats)
+        params = init_net(keys[0], obs)
         cap = cfg.buffer_size
         empty = lambda x: jnp.zeros((cap,) + x.shape[1:], x.dtype)  # noqa: E731
         buffer = Buffer(
@@ -127,25 +152,11 @@ def make_policy(env: EvolutionEnv, cfg: DQNConfig) -> Policy:
     def act(learner: DQNLearner, keys: jax.Array, obs: Observation, step):
         """Epsilon-greedy over valid actions only."""
         key_eps, key_rand = keys
-        greedy = masked_argmax(q_fn(learner.params, obs), obs.mask)
+        greedy = masked_argmax(values_fn(learner.params, obs), obs.mask)
         uniform = random_valid_actions(key_rand, obs.mask)
         explore = jax.random.uniform(key_eps, (obs.mask.shape[0],)) < epsilon(cfg, step)
         action = jnp.where(explore, uniform, greedy).astype(jnp.int32)
         return action, {"epsilon": epsilon(cfg, step)}
-
-    def loss_fn(params, target_params, batch):
-        obs, action, reward, next_obs, terminal = batch
-        q = q_fn(params, obs)
-        q_taken = jnp.take_along_axis(q, action[:, None], -1)[:, 0]
-        target = double_q_target(
-            reward,
-            terminal.astype(q.dtype),
-            cfg.discount,
-            q_fn(params, next_obs),
-            q_fn(target_params, next_obs),
-            next_obs.mask,
-        )
-        return jnp.mean(optax.huber_loss(q_taken, jax.lax.stop_gradient(target)))
 
     def learn(learner: DQNLearner, keys: jax.Array, tr: Transition, step):
         # STORE
@@ -185,4 +196,26 @@ def make_policy(env: EvolutionEnv, cfg: DQNConfig) -> Policy:
         return DQNLearner(params, target, opt_state, buf), {"loss": losses.mean()}
 
     return Policy(keys=(1, 2, 1), init=init, act=act, learn=learn,
-                  scores=lambda learner, obs: q_fn(learner.params, obs))
+                  scores=lambda learner, obs: values_fn(learner.params, obs))
+
+
+def make_policy(env: EvolutionEnv, cfg: DQNConfig) -> Policy:
+    """Double-DQN's acting and learning; scores are the Q-values."""
+    init_net, apply = q_network(env.space, cfg)
+    q_fn = lambda params, obs: apply(params, obs)[..., 0]  # noqa: E731  (N, num_actions)
+
+    def loss_fn(params, target_params, batch):
+        obs, action, reward, next_obs, terminal = batch
+        q = q_fn(params, obs)
+        q_taken = jnp.take_along_axis(q, action[:, None], -1)[:, 0]
+        target = double_q_target(
+            reward,
+            terminal.astype(q.dtype),
+            cfg.discount,
+            q_fn(params, next_obs),
+            q_fn(target_params, next_obs),
+            next_obs.mask,
+        )
+        return jnp.mean(optax.huber_loss(q_taken, jax.lax.stop_gradient(target)))
+
+    return replay_policy(env, cfg, init_net, q_fn, loss_fn)

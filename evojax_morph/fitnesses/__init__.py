@@ -5,7 +5,7 @@ evaluate)`, its settings check and its typical scale as a `Fitness`, and list it
 settings go in `FitnessConfig` (base.py) when it has any.
 """
 
-from evojax_morph.fitnesses import ppo, predefined, tame
+from evojax_morph.fitnesses import ppo, predefined, table, tame
 from evojax_morph.fitnesses.base import (
     Fitness,
     FitnessConfig,
@@ -16,7 +16,7 @@ from evojax_morph.fitnesses.base import (
 )
 from evojax_morph.fitnesses.ppo import standard_ppo
 
-register(ppo.FITNESS, predefined.FITNESS, tame.FITNESS)
+register(ppo.FITNESS, predefined.FITNESS, tame.FITNESS, table.FITNESS)
 
 __all__ = ["Fitness", "FitnessConfig", "FitnessResult", "get_fitness", "list_fitnesses", "register",
            "standard_ppo"]

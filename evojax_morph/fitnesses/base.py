@@ -23,12 +23,16 @@ class FitnessConfig:
     kind: a registered fitness (`list_fitnesses()`): "ppo" (the return of a controller trained
       with PPO on the body, NGE-style), "predefined" (the space's hand-crafted deterministic
       fitness) or "tame" (task-agnostic: how well random motor primitives can be told apart
-      from where they leave the body, with a pre-trained classifier; see `evojax_morph.tame`).
+      from where they leave the body, with a pre-trained classifier; see `evojax_morph.tame`)
+      or "table" (the mean of `ppo.controllers` stored PPO results of the body, drawn from a
+      landscape table; no controllers, no inheritance; see `fitnesses.table`).
     task: the locomotion task the PPO controller learns.
     ppo: the inner PPO's settings and budget.
     classifier: for "tame", the directory of a classifier saved by `python -m evojax_morph.tame`.
     physics: the engine that steps the worlds of the kinds that simulate ("jax" or "warp",
       `evojax_morph.engines`; the CLI resolves its "auto" before it gets here).
+    table: for "table", the .npz of a table built by `python -m experiments.build_tables`;
+      "" for the space's packaged table (`evojax_morph/tables/SPACE.npz`).
     """
 
     kind: str = "ppo"
@@ -36,6 +40,7 @@ class FitnessConfig:
     ppo: PPOConfig = PPOConfig()
     classifier: str = ""
     physics: str = "jax"
+    table: str = ""
 
     def __post_init__(self):
         if self.physics not in list_engines():
@@ -52,7 +57,8 @@ class FitnessConfig:
     def from_dict(cls, d: dict) -> FitnessConfig:
         tuples = lambda c: {k: tuple(v) if isinstance(v, list) else v for k, v in c.items()}
         return cls(kind=d["kind"], task=TaskConfig(**d["task"]), ppo=PPOConfig(**tuples(d["ppo"])),
-                   classifier=d["classifier"], physics=d.get("physics", "jax"))
+                   classifier=d["classifier"], physics=d.get("physics", "jax"),
+                   table=d.get("table", ""))
 
 
 @struct.dataclass

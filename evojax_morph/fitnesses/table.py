@@ -1,0 +1,279 @@
+"""The table fitness: a draw from stored PPO results of every body of an enumerable space.
+
+A landscape table (NAS-Bench-101's idea) holds, for every body of a space (`enumerate_bodies`,
+told apart by `Space.canonical`), S independent results of the PPO fitness, each one controller
+trained from scratch. The fitness of a body is the mean of K results drawn without replacement
+from its row, K = `cfg.ppo.controllers`: the noise of the real fitness with K controllers, at
+the cost of a lookup. It runs inside the jitted agent loop: a body is matched to its row by a
+jittable signature of its tree (`signature`), equal exactly when the canonical names are.
+
+No controllers and no inheritance: every draw is a fresh training's result, so a child does not
+start from its parent's controller and a no-op (or a revisit) draws again instead of training
+further. Under the PPO fitness a lineage's fitness rises with training alone; here it does not,
+so rewards are differences of independent draws, and a body's value is its table mean.
+
+Tables are built by `python -m experiments.build_tables` (see there) and live in
+`evojax_morph/tables/SPACE.npz` unless `FitnessConfig.table` names another file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from evojax_morph.fitnesses.base import Fitness, FitnessConfig, FitnessResult
+from evojax_morph.morphology import Morphology, stack
+from evojax_morph.spaces import Space
+
+TABLES = Path(__file__).resolve().parents[1] / "tables"
+FORMAT = 1  # the file layout's version, in every table's metadata
+ATTR_RESOLUTION = 1e-5  # attributes closer than this are one value (canonical uses 6 digits)
+
+
+def default_path(space_name: str) -> Path:
+    """Where the packaged table of a space lives."""
+    return TABLES / f"{space_name}.npz"
+
+
+def table_path(space: Space, cfg: FitnessConfig) -> Path:
+    """The table `cfg` names, or the packaged one of `space`."""
+    return Path(cfg.table) if cfg.table else default_path(space.name)
+
+
+@dataclasses.dataclass
+class Table:
+    """S stored fitness results of each of T bodies; a NaN result is not measured yet.
+
+    Saved as one compressed .npz (a few tens of KB for 256 bodies x 32 results).
+    """
+
+    space: str
+    names: list[str]  # (T,) canonical names (`Space.canonical`)
+    bodies: Morphology  # (T, max_nodes, ...) the bodies, as numpy arrays
+    fitness: np.ndarray  # (T, S) float32; NaN where not measured yet
+    diverged: np.ndarray  # (T, S) bool: the result's simulation diverged (fitness zeroed)
+    meta: dict  # how the results were made: settings, engine, device, date, revision, ...
+
+    @property
+    def seeds(self) -> int:
+        return self.fitness.shape[1]
+
+    @property
+    def done(self) -> np.ndarray:
+        """(T, S) bool: the results measured."""
+        return ~np.isnan(self.fitness)
+
+    def mean(self) -> np.ndarray:
+        """(T,) each body's mean over its results: its true fitness, as far as the table
+        knows."""
+        return self.fitness.mean(1)
+
+    def row(self, space: Space, m: Morphology) -> int:
+        """The row of body `m` (outside jit); a ValueError naming it if the table lacks it."""
+        name = space.canonical(m)
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise ValueError(f"body {name} is not in the {self.space} table") from None
+
+    def save(self, path) -> None:
+        """Writes the table to `path` (.npz) under a temporary name, then renames it."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp.npz")
+        b = self.bodies
+        np.savez_compressed(
+            tmp, names=np.asarray(self.names), active=b.active, parent=b.parent, kind=b.kind,
+            site=b.site, attrs=b.attrs, fitness=self.fitness.astype(np.float32),
+            diverged=self.diverged, meta=np.asarray(json.dumps({"space": self.space,
+                                                                "format": FORMAT, **self.meta})),
+        )
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path) -> Table:
+        with np.load(path, allow_pickle=False) as f:
+            meta = json.loads(str(f["meta"]))
+            bodies = Morphology(*(np.asarray(f[k]) for k in
+                                  ("active", "parent", "kind", "site", "attrs")))
+            space = meta.pop("space")
+            if meta.get("format") != FORMAT:
+                raise ValueError(f"{path}: table format {meta.get('format')}, expected {FORMAT}")
+            return cls(space, [str(n) for n in f["names"]], bodies,
+                       np.asarray(f["fitness"], np.float32), np.asarray(f["diverged"]), meta)
+
+
+# --- the signature: a body's row found inside jit ----------------------------------------------
+
+
+def _mix(x: jax.Array) -> jax.Array:
+    """MurmurHash3's 32-bit finaliser: a bijection of uint32 that spreads every bit."""
+    x = x ^ (x >> 16)
+    x = x * jnp.uint32(0x85EBCA6B)
+    x = x ^ (x >> 13)
+    x = x * jnp.uint32(0xC2B2AE35)
+    return x ^ (x >> 16)
+
+
+def _signature(m: Morphology, seed: jax.Array) -> jax.Array:
+    """() uint32 hash of the tree under `seed`, bottom up: a node's hash mixes its (kind, site,
+    attributes) with the wrapping sum of its children's mixed hashes, so slot numbers and the
+    order of siblings do not count."""
+    quantised = jnp.round(m.attrs / ATTR_RESOLUTION).astype(jnp.int32)
+    code = _mix(seed ^ m.kind.astype(jnp.uint32))
+    code = _mix(code + m.site.astype(jnp.uint32) * jnp.uint32(0x9E3779B9))
+    for a in range(m.attrs.shape[-1]):
+        code = _mix(code + jax.lax.bitcast_convert_type(quantised[:, a], jnp.uint32))
+    acc = jnp.zeros(m.max_nodes, jnp.uint32)  # children's sum, filled before the node is read
+    for i in range(m.max_nodes - 1, 0, -1):  # a parent's index is smaller than its child's
+        subtree = _mix(code[i] + acc[i])
+        add = jnp.where(m.active[i], _mix(subtree ^ jnp.uint32(0x27D4EB2F)), jnp.uint32(0))
+        acc = acc.at[jnp.maximum(m.parent[i], 0)].add(add)
+    return _mix(code[0] + acc[0])
+
+
+SEEDS = (0x243F6A88, 0xB7E15162)  # two independent hashes: a 64-bit signature
+
+
+def signature(m: Morphology) -> jax.Array:
+    """(2,) uint32, jittable: a hash of the body's tree of (kind, site, attributes), equal for
+    bodies with equal `Space.canonical` names (slot numbers and sibling order ignored;
+    attributes to `ATTR_RESOLUTION`). Distinct bodies collide with probability about 2^-64;
+    a table checks its own bodies have distinct signatures when it is loaded."""
+    return jnp.stack([_signature(m, jnp.uint32(s)) for s in SEEDS])
+
+
+# --- the fitness kind --------------------------------------------------------------------------
+
+
+def validate(cfg: FitnessConfig) -> None:
+    if cfg.table and not Path(cfg.table).is_file():
+        raise ValueError(f"no table at {cfg.table!r} (build one with "
+                         "`python -m experiments.build_tables --space SPACE --out PATH`)")
+
+
+@functools.lru_cache(maxsize=8)
+def _prepared(space: Space, path: str, mtime_ns: int):
+    """(table, (T, 2) signatures) of a checked table; cached per file version."""
+    del mtime_ns  # part of the cache key only
+    table = Table.load(path)
+    if table.space != space.name:
+        raise ValueError(f"the table {path} is of {table.space}, not {space.name}")
+    if not table.done.all():
+        raise ValueError(f"the table {path} is incomplete ({table.done.sum()} of "
+                         f"{table.done.size} results): resume its build")
+    sigs = np.asarray(jax.jit(jax.vmap(signature))(table.bodies))
+    if len({tuple(s) for s in sigs}) != len(sigs):
+        raise ValueError(f"two bodies of the table {path} share a signature")
+    for i in range(len(table.names)):
+        body = jax.tree.map(lambda x, i=i: x[i], table.bodies)
+        if space.canonical(body) != table.names[i]:
+            raise ValueError(f"the table {path} names body {i} {table.names[i]}, but it is "
+                             f"{space.canonical(body)}")
+    _check_closed(space, table, sigs, path)
+    return table, sigs
+
+
+def _check_closed(space: Space, table: Table, sigs: np.ndarray, path: str) -> None:
+    """Every body reachable from m0 is in the table: m0 is, and every valid mutation of a body
+    of the table gives one (one jitted call over all bodies x actions). So no body an agent
+    meets from m0 is missing; ValueError naming the first missing body otherwise."""
+    m0 = space.initial()
+    if not (sigs == np.asarray(signature(m0))).all(-1).any():
+        raise ValueError(f"m0 {space.canonical(m0)} is not in the table {path}")
+    actions = np.arange(space.max_nodes * space.num_mutations)
+
+    @jax.jit
+    def children(bodies):
+        def of(m):
+            mutate = lambda a: space.mutate(m, a // space.num_mutations, a % space.num_mutations)
+            kids = jax.vmap(mutate)(actions)
+            return kids, jax.vmap(signature)(kids), space.action_mask(m).reshape(-1)
+
+        return jax.vmap(of)(bodies)
+
+    kids, kid_sigs, valid = jax.device_get(children(table.bodies))  # (T, A, ...)
+    known = (kid_sigs[:, :, None, :] == sigs[None, None]).all(-1).any(-1)  # (T, A)
+    missing = np.argwhere(valid & ~known)
+    if len(missing):
+        t, a = missing[0]
+        kid = jax.tree.map(lambda x: x[t, a], kids)
+        raise ValueError(
+            f"the table {path} lacks body {space.canonical(kid)}, reached from its body "
+            f"{table.names[t]} by node {a // space.num_mutations}: "
+            f"{space.mutation_names[a % space.num_mutations]} ({len(missing)} such mutations)"
+        )
+
+
+def load(space: Space, cfg: FitnessConfig) -> tuple[Table, np.ndarray]:
+    """The checked table `cfg` names for `space` and its (T, 2) signatures; ValueError when it
+    is missing, of another space, incomplete, or lacks a body reachable from m0."""
+    path = table_path(space, cfg)
+    if not path.is_file():
+        raise ValueError(
+            f"no table for {space.name} at {path}: build one with `python -m "
+            f"experiments.build_tables --space {space.name} --out {path}`, or set "
+            "FitnessConfig(table=PATH)"
+        )
+    return _prepared(space, str(path.resolve()), path.stat().st_mtime_ns)
+
+
+def make(space: Space, cfg: FitnessConfig):
+    table, sigs_np = load(space, cfg)
+    k, seeds = cfg.ppo.controllers, table.seeds
+    if k > seeds:
+        raise ValueError(f"{k} controllers per body, but the table holds {seeds} results a body")
+    sigs = jnp.asarray(sigs_np)
+    fitness, diverged = jnp.asarray(table.fitness), jnp.asarray(table.diverged)
+    env_steps = k * int(table.meta.get("env_steps_per_result", 0))
+    name = table_path(space, cfg)
+
+    def one(key: jax.Array, m: Morphology):
+        hit = (sigs == signature(m)).all(-1)  # (T,)
+        row = jnp.argmax(hit)
+        # k distinct results: the k largest of S uniforms (10x faster than random.choice's
+        # permutation on the CPU)
+        draws = jax.lax.top_k(jax.random.uniform(key, (seeds,)), k)[1]
+        values = fitness[row, draws]
+        found = hit.any()
+        nan = jnp.float32(jnp.nan)
+        return (jnp.where(found, values.mean(), nan), jnp.where(found, values.std(), nan),
+                diverged[row, draws].any() | ~found, found)
+
+    def report(found, morphs):
+        """Host side: raises naming the first body not found (runs only when one is missing,
+        or under vmap, where it checks)."""
+        found = np.asarray(found)
+        if found.all():
+            return
+        flat = jax.tree.map(lambda x: np.asarray(x).reshape((-1,) + x.shape[found.ndim:]),
+                            morphs)
+        i = int(np.flatnonzero(~found.reshape(-1))[0])
+        body = space.canonical(jax.tree.map(lambda x: x[i], flat))
+        raise ValueError(f"body {body} is not in the {space.name} table {name}")
+
+    def evaluate(keys: jax.Array, morphs: Morphology, params) -> FitnessResult:
+        f, std, div, found = jax.vmap(one)(keys, morphs)
+        # A body outside the table gets NaN (diverged) and a host-side error; a table that
+        # loads holds every body reachable from m0 (`_check_closed`), so agents never meet one.
+        jax.lax.cond(found.all(), lambda *_: None,
+                     lambda *a: jax.debug.callback(report, *a), found, morphs)
+        zeros = jnp.zeros_like(f)
+        return FitnessResult(f, std, div, params, zeros, zeros, env_steps=env_steps)
+
+    return None, evaluate
+
+
+FITNESS = Fitness(name="table", validate=validate, scale=lambda space: 100.0, make=make)
+
+
+def stacked(bodies: list[Morphology]) -> Morphology:
+    """The bodies as one numpy `Morphology` batch, as a `Table` keeps them."""
+    return jax.tree.map(np.asarray, jax.device_get(stack(bodies)))
