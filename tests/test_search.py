@@ -80,12 +80,13 @@ def test_actor_critic_learns_constructor():
 
 @pytest.mark.learning
 def test_actor_critic_learns_bad_walker():
-    """Bad Walker's sparse reward: the actor-critic learns to remove the long foot and move the
-    short feet to the ends (m*) and to hold m*, instead of settling for no-ops."""
+    """Bad Walker: the actor-critic learns to remove the long foot (+1; no body that keeps it
+    returns more than 0.33) although removing a short foot costs 1.33, instead of settling for
+    no-ops or short feet moved out."""
     final = a2c_bad_walker(range(12))
     # Measured on 2 CPU cores (jax 0.10.2) over seeds 100-123
     # (`python -m experiments.learning_margins --measure a2c --seeds 24`): median 1.15 of 1.33;
-    # 19 seeds at 1.06-1.23 (m* reached, held with a few exploring mutations), 5 at -0.03-0.24
+    # 19 seeds at 1.06-1.23 (the long foot removed, m* in most episodes), 5 at -0.03-0.24
     # (the short feet moved out, the long foot still on: 0.33 at best). 0.5 lies above every
     # body that keeps the long foot, so the median falls below it only if 7 of 12 seeds stall,
     # about 1 in 200 at the measured 5 in 24 (Binomial); 12-seed medians' 1% quantile 0.65.
