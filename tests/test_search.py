@@ -86,7 +86,7 @@ def test_actor_critic_learns_bad_walker():
     final = a2c_bad_walker(range(12))
     # Measured on 2 CPU cores (jax 0.10.2) over seeds 100-123
     # (`python -m experiments.learning_margins --measure a2c --seeds 24`): median 1.15 of 1.33;
-    # 19 seeds at 1.06-1.23 (the long foot removed, m* in most episodes), 5 at -0.03-0.24
+    # 19 seeds at 1.06-1.23 (the long foot removed), 5 at -0.03-0.24
     # (the short feet moved out, the long foot still on: 0.33 at best). 0.5 lies above every
     # body that keeps the long foot, so the median falls below it only if 7 of 12 seeds stall,
     # about 1 in 200 at the measured 5 in 24 (Binomial); 12-seed medians' 1% quantile 0.65.
