@@ -1,10 +1,14 @@
 """Advantage actor-critic over mutations: the source's A3C done the JAX way.
 
 Instead of asynchronous workers, N evolutions unroll in parallel under vmap; every `unroll`
-environment steps one synchronous update uses GAE advantages over the stored unroll. One jraph
-GNN reads the tree: a per-node policy head gives logits[node, mutation] (a softmax over the
-valid actions only) and a pooled head the state value. The shared loop (`agents.base`) acts,
-mutates, evaluates the children and calls `learn` in one jitted `lax.scan` per chunk of steps.
+environment steps one synchronous update uses GAE advantages over the stored unroll,
+bootstrapped with the value of the state after it. The default, `unroll` 1, updates after every
+step from its N transitions (advantage r + V(s') - V(s)), within episodes as A3C's workers
+update; one update per episode (`unroll` = horizon) left the agent 80 updates in Figure 4,
+too few to learn Bad Walker. One jraph GNN reads the tree: a per-node policy head gives
+logits[node, mutation] (a softmax over the valid actions only) and a pooled head the state
+value. The shared loop (`agents.base`) acts, mutates, evaluates the children and calls `learn`
+in one jitted `lax.scan` per chunk of steps.
 """
 
 from __future__ import annotations
@@ -29,19 +33,23 @@ class A2CConfig:
 
     hidden: int = 64  # GNN width
     layers: int = 3  # graph convolution rounds
-    unroll: int = 4  # environment steps per update
+    unroll: int = 1  # environment steps per update; 1: an update every step
     learning_rate: float = 1e-3
     discount: float = 1.0  # 1: the return of an episode is f_k - f_0
     gae_lambda: float = 0.95
-    entropy_cost: float = 0.01
+    # With an update every step, 0.01 to 0.02 let Bad Walker's policy drop the long foot's
+    # removal along with the short feet's (the GNN's "remove" outputs start alike) before it
+    # tells them apart, and settle for no-ops (docs/results.md, Figure 4).
+    entropy_cost: float = 0.06
     value_cost: float = 0.5
     reward_scale: float = 1.0  # rewards are multiplied by this before learning
     max_grad_norm: float = 1.0
 
     @classmethod
     def for_run(cls, env: EvolutionEnv, run: RunOptions) -> A2CConfig:
-        """A run's settings: one update per episode of every parallel evolution."""
-        return cls(hidden=run.hidden, reward_scale=run.reward_scale, unroll=env.horizon)
+        """A run's settings: one update per environment step (`unroll` 1)."""
+        del env
+        return cls(hidden=run.hidden, reward_scale=run.reward_scale)
 
 
 class ActorCritic(nn.Module):
@@ -74,6 +82,7 @@ class A2CLearner:
     opt_state: optax.OptState
     unroll: Unroll
     loss: jax.Array  # (): the last update's loss
+    value_loss: jax.Array  # (): its value term, (target - value)^2 before value_cost
 
 
 def masked_entropy(logits: jax.Array, mask: jax.Array) -> jax.Array:
@@ -110,7 +119,7 @@ def make_policy(env: EvolutionEnv, cfg: A2CConfig) -> Policy:
             reward=jnp.zeros((t, n)),
             done=jnp.zeros((t, n), bool),
         )
-        return A2CLearner(params, optimizer.init(params), unroll, jnp.zeros(()))
+        return A2CLearner(params, optimizer.init(params), unroll, jnp.zeros(()), jnp.zeros(()))
 
     def act(learner: A2CLearner, keys: jax.Array, obs: Observation, step):
         """A sample of the softmax over valid actions."""
@@ -139,7 +148,8 @@ def make_policy(env: EvolutionEnv, cfg: A2CConfig) -> Policy:
         policy_loss = -jnp.mean(logp_taken * advantages)
         value_loss = jnp.mean((targets - values) ** 2)
         entropy = jnp.mean(masked_entropy(logits, unroll.obs.mask))
-        return policy_loss + cfg.value_cost * value_loss - cfg.entropy_cost * entropy
+        loss = policy_loss + cfg.value_cost * value_loss - cfg.entropy_cost * entropy
+        return loss, value_loss
 
     def learn(learner: A2CLearner, keys: jax.Array, tr: Transition, step):
         del keys
@@ -156,13 +166,18 @@ def make_policy(env: EvolutionEnv, cfg: A2CConfig) -> Policy:
         # UPDATE once the unroll is full, bootstrapping from the state after its last step (an
         # ended episode's bootstrap is masked out, so the state before the restart will do)
         def update(_):
-            loss, grads = jax.value_and_grad(loss_fn)(learner.params, unroll, tr.next_obs)
+            (loss, value_loss), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+                learner.params, unroll, tr.next_obs
+            )
             updates, opt_state = optimizer.update(grads, learner.opt_state, learner.params)
-            return optax.apply_updates(learner.params, updates), opt_state, loss
+            return optax.apply_updates(learner.params, updates), opt_state, loss, value_loss
 
-        keep = lambda _: (learner.params, learner.opt_state, learner.loss)  # noqa: E731
-        params, opt_state, loss = jax.lax.cond(t == cfg.unroll - 1, update, keep, None)
-        return A2CLearner(params, opt_state, unroll, loss), {"loss": loss}
+        keep = lambda _: (learner.params, learner.opt_state, learner.loss, learner.value_loss)  # noqa: E731
+        params, opt_state, loss, value_loss = jax.lax.cond(
+            t == cfg.unroll - 1, update, keep, None
+        )
+        learner = A2CLearner(params, opt_state, unroll, loss, value_loss)
+        return learner, {"loss": loss, "value_loss": value_loss}
 
     return Policy(keys=(1, 1, 0), init=init, act=act, learn=learn,
                   scores=lambda learner, obs: apply(learner.params, obs)[0])
