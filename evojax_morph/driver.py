@@ -283,7 +283,7 @@ def write_results(
         for note in shown.notes:
             print(f"best.gif: {note}")
         walked = shown.replay.distance[-1]
-        written += f" best.gif ({shown.backend}; the best body walks {walked:.2f} m)"
+        written += f" best.gif (drawn by {shown.backend}; the best body walks {walked:.2f} m)"
     elif not saved:
         print("\nno controllers to keep: the fitness trains none (only ppo does), so no best.gif")
     print(f"\nwrote {out}/: {written}")

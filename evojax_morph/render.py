@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
           f"return {rep.episode_return:.4g}")
     for note in shown.notes:
         print(note)
-    print(f"wrote ({shown.backend}): {' '.join(str(p) for p in shown.paths)}")
+    print(f"drawn by {shown.backend}; wrote {' '.join(str(p) for p in shown.paths)}")
     return 0
 
 
