@@ -75,7 +75,8 @@ def evaluate(
         distribution, which the batch did not shift as far as measured (those 10 keys: median
         25.4 alone, 24.7 in the batch): compare trained fitness across batches by statistics
         over keys. The same call (same batch and keys) repeated gives the same values on the
-        CPU, and on a GPU under `em.deterministic_gpu()` (docs/benchmarks.md).
+        CPU (measured to the bit), and on a GPU under `em.deterministic_gpu()`
+        (docs/benchmarks.md).
       cfg: which fitness and its budgets.
       init_params: (B, ...) controllers to start training from (a parent's, for inheritance);
         fresh ones if None.
