@@ -50,10 +50,15 @@ __version__ = "0.1.0"
 
 
 def __getattr__(name: str):
-    """`GymEvolutionEnv` on first use: it needs the optional gymnasium (the `gym` extra), so it
-    is left out of `__all__`."""
+    """`GymEvolutionEnv` and `SB3EvolutionEnv` on first use: they need the optional gymnasium
+    (the `gym` extra) and stable-baselines3 (the `sb3` extra), so they are left out of
+    `__all__`."""
     if name == "GymEvolutionEnv":
         from evojax_morph.gym_env import GymEvolutionEnv
 
         return GymEvolutionEnv
+    if name == "SB3EvolutionEnv":
+        from evojax_morph.sb3_env import SB3EvolutionEnv
+
+        return SB3EvolutionEnv
     raise AttributeError(f"module 'evojax_morph' has no attribute {name!r}")

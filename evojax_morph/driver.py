@@ -31,6 +31,71 @@ def checkpoint_manager(out: Path):
     return ocp, ocp.CheckpointManager(out.resolve() / "checkpoints", options=options)
 
 
+class ResumeError(RuntimeError):
+    """No checkpoint of a run directory could be read back."""
+
+
+DAMAGED = "checkpoints_damaged"  # where checkpoints that do not read are moved, under the run
+
+
+def _why(e: Exception) -> str:
+    """The first part of a restore error (TensorStore appends its whole spec)."""
+    text = str(e).split(" [tensorstore_spec")[0].strip().splitlines()
+    text = text[0] if text else ""
+    return f"{type(e).__name__}: {text[:300]}"
+
+
+def restore_newest(out: Path, restore_fn, log=print):
+    """The state of the newest checkpoint of `out` that reads, newer ones that do not moved
+    aside to OUT/checkpoints_damaged/STEP (kept, and out of the way of the steps the resumed
+    run saves again).
+
+    Args:
+      out: the run directory.
+      restore_fn: `restore_fn(manager, step)` -> state; an exception says the step is damaged.
+      log: prints what was skipped and why.
+    Returns:
+      (step, state, [(skipped step, why)]), or (None, None, []) if there is no checkpoint.
+    Raises:
+      ResumeError: there are checkpoints and none reads; each step's reason is in the message.
+    """
+    _, manager = checkpoint_manager(out)
+    skipped = []
+    for step in sorted(manager.all_steps(), reverse=True):
+        try:
+            state = restore_fn(manager, step)
+        except Exception as e:  # damaged data, metadata or a cut-short copy: TensorStore's
+            skipped.append((step, _why(e)))  # DATA_LOSS, JSON and file errors alike
+            continue
+        break
+    else:
+        if skipped:
+            raise ResumeError(
+                f"--resume: no checkpoint of {str(out)!r} reads, so there is nothing to resume "
+                "from (nothing was changed): " + "; ".join(f"step {s}: {w}" for s, w in skipped)
+            )
+        return None, None, []
+    for bad, why in skipped:
+        log(f"checkpoint {bad} does not read, skipped ({why})")
+    if skipped:
+        if jax.process_index() == 0:
+            for bad, _ in skipped:
+                target = out / DAMAGED / str(bad)
+                n = 1
+                while target.exists():
+                    n += 1
+                    target = out / DAMAGED / f"{bad}-{n}"
+                target.parent.mkdir(exist_ok=True)
+                (out / "checkpoints" / str(bad)).rename(target)
+                log(f"moved it to {target} (kept, not deleted)")
+        if jax.process_count() > 1:  # every process sees the moves before it saves
+            from jax.experimental import multihost_utils
+
+            multihost_utils.sync_global_devices("damaged checkpoints moved")
+    manager.close()
+    return step, state, skipped
+
+
 def fresh_run_dir(cfg: RunConfig) -> Path:
     """runs/SPACE-FITNESS-seedS, or the first of -2, -3, ... that does not exist yet."""
     base = Path("runs") / f"{cfg.space}-{cfg.fitness}-seed{cfg.seed}"
@@ -46,10 +111,12 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     `resume`, drawing best.gif at the end if `gif`; every process calls it, process 0 writes
     the files and prints."""
     lead = jax.process_index() == 0  # the process that writes files and prints
-    if lead:
-        (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
+    write_config = lambda: (out / "config.json").write_text(  # noqa: E731
+        json.dumps(dataclasses.asdict(cfg), indent=1)
+    )
+    if lead and not resume:
+        write_config()
     p = build(cfg)
-    ocp, manager = checkpoint_manager(out)
     log = print if lead else (lambda *a, **k: None)
     log(f"evojax_morph: {cfg.agent} on {cfg.space} with {cfg.fitness} fitness, {cfg.num_envs} "
         f"parallel evolutions x {cfg.steps} steps, horizon {p.env.horizon}, on "
@@ -59,16 +126,24 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     key = jax.random.PRNGKey(cfg.seed)
     key_init, key_greedy = jax.random.split(key)
     rows = []
-    log_bodies = bodylog.BodyLog(out / "bodies.sqlite", p.space) if lead else None
-    if resume and manager.latest_step() is not None:
-        step = manager.latest_step()
+    step = state = None
+    if resume:
         # Restored onto this run's devices, however many the saving run had.
         on_mesh = lambda x: jax.ShapeDtypeStruct(  # noqa: E731
             x.shape, x.dtype, sharding=replicated(batch_mesh())
         )
         abstract = jax.tree.map(on_mesh, jax.eval_shape(p.agent.init, key_init))
+        import orbax.checkpoint as ocp
+
         restore = ocp.args.Composite(state=ocp.args.StandardRestore(abstract))
-        state = manager.restore(step, args=restore)["state"]
+        step, state, _ = restore_newest(
+            out, lambda manager, step: manager.restore(step, args=restore)["state"], log
+        )
+        if lead:  # a checkpoint reads (or there is none): the run goes on under this config
+            write_config()
+    ocp, manager = checkpoint_manager(out)
+    log_bodies = bodylog.BodyLog(out / "bodies.sqlite", p.space) if lead else None
+    if step is not None:
         with open(out / "metrics.csv") as f:
             rows = [r for r in csv.DictReader(f) if int(r["step"]) <= step]
         if lead:
@@ -208,7 +283,7 @@ def write_results(
         for note in shown.notes:
             print(f"best.gif: {note}")
         walked = shown.replay.distance[-1]
-        written += f" best.gif ({shown.backend}; the best body walks {walked:.2f} m)"
+        written += f" best.gif (drawn by {shown.backend}; the best body walks {walked:.2f} m)"
     elif not saved:
         print("\nno controllers to keep: the fitness trains none (only ppo does), so no best.gif")
     print(f"\nwrote {out}/: {written}")

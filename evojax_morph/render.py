@@ -3,8 +3,9 @@
 Replays one evaluation episode of the controller the run trained on the body (the run keeps
 them in RUN_DIR/controllers/, for the PPO fitness) and writes a GIF and, with imageio and
 imageio-ffmpeg installed, an MP4, with the distance walked on screen. MuJoCo's renderer draws
-the frames where OpenGL works: set MUJOCO_GL=egl on a GPU machine, or MUJOCO_GL=osmesa where
-OSMesa is installed; elsewhere a matplotlib drawing of the capsules stands in.
+the frames where OpenGL works: on MUJOCO_GL if set, else on the first of the display's GL
+(GLFW), EGL and OSMesa that draws in a trial subprocess; where none does, a matplotlib drawing
+of the capsules stands in. The command says which drew.
 """
 
 from __future__ import annotations
@@ -39,7 +40,8 @@ def parse(argv) -> argparse.Namespace:
         help="the files' path without suffix (default: RUN_DIR/best, RUN_DIR/final, "
         "RUN_DIR/stepN); .gif and .mp4 are added")
     add("--backend", default="auto", choices=video.BACKENDS,
-        help="auto: MuJoCo's renderer if OpenGL works, else a matplotlib drawing")
+        help="auto: MuJoCo's renderer if OpenGL works (MUJOCO_GL, else GLFW with a display, "
+        "EGL or OSMesa), else a matplotlib drawing")
     add("--controller", type=int, default=0,
         help="which of the body's K controllers walks (PPOConfig.controllers)")
     add("--seed", type=int, default=None,
@@ -87,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
           f"return {rep.episode_return:.4g}")
     for note in shown.notes:
         print(note)
-    print(f"wrote ({shown.backend}): {' '.join(str(p) for p in shown.paths)}")
+    print(f"drawn by {shown.backend}; wrote {' '.join(str(p) for p in shown.paths)}")
     return 0
 
 

@@ -301,7 +301,11 @@ def main(argv: list[str] | None = None) -> int:
     cfg, out, resume, gif = parse(argv)
     barrier("parsed")  # every process checked --out before any of them writes there
     jax.config.update("jax_default_matmul_precision", "highest")
-    driver.execute(cfg, out, resume, gif)
+    try:
+        driver.execute(cfg, out, resume, gif)
+    except driver.ResumeError as e:  # bad input, as the parser's errors: code 2 and why
+        print(f"python -m evojax_morph.run: error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
     return 0
 
 

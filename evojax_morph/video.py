@@ -2,8 +2,8 @@
 
 `replay(saved, key)` rolls out the controller's deterministic policy on its body in MJX, as the
 PPO fitness's evaluation episodes do, and records the positions; `draw_frames` turns them into
-pictures with MuJoCo's renderer where OpenGL works (`MUJOCO_GL=egl` on a GPU machine,
-`MUJOCO_GL=osmesa` where OSMesa is installed, set before Python starts) and otherwise with a
+pictures with MuJoCo's renderer where OpenGL works (`choose_gl`: `MUJOCO_GL` if set, else the
+display's GL, else EGL, else OSMesa, each tried in a subprocess first) and otherwise with a
 matplotlib drawing of the capsules, which needs no GL; `write_video` encodes them.
 `render_saved(saved, out)` does all three, and `render(run_dir, body)` for a body of a run
 directory (`python -m evojax_morph.render`).
@@ -11,7 +11,10 @@ directory (`python -m evojax_morph.render`).
 
 from __future__ import annotations
 
+import importlib
 import os
+import subprocess
+import sys
 import warnings
 from pathlib import Path
 from typing import NamedTuple
@@ -47,7 +50,7 @@ class Replay(NamedTuple):
 
 class Rendered(NamedTuple):
     paths: list[Path]  # the files written (the GIF, and the MP4 if it could be encoded)
-    backend: str  # who drew the frames: "mujoco" or "matplotlib"
+    backend: str  # who drew the frames: "mujoco (egl)" (MuJoCo, and its GL) or "matplotlib"
     replay: Replay
     notes: list[str]  # what could not be done, and why
 
@@ -155,11 +158,108 @@ def _caption(rep: Replay, i: int) -> str:
     return f"distance {rep.distance[i]:+.2f} m   t = {i * rep.dt:.1f} s"
 
 
-def _mujoco_frames(scene: _Scene, rep: Replay, index, width: int, height: int) -> list:
+# MuJoCo's Python bindings pick their GL (`mujoco.GLContext`) from MUJOCO_GL when `mujoco` is
+# first imported; unset, that is GLFW, which needs a display. EGL and OSMesa each fix PyOpenGL's
+# platform for the whole process once loaded, so a failed try of one would rule out the other:
+# each is tried in a subprocess, and only the one that drew there is loaded here.
+GL_FALLBACKS = ("egl", "osmesa")
+_PROBE = """
+import mujoco, numpy as np
+m = mujoco.MjModel.from_xml_string(
+    '<mujoco><worldbody><geom type="sphere" size=".1"/></worldbody></mujoco>')
+d = mujoco.MjData(m)
+mujoco.mj_forward(m, d)
+r = mujoco.Renderer(m, 16, 16)
+r.update_scene(d)
+ok = r.render().std() > 0
+r.close()
+print("GL_DREW" if ok else "GL_BLANK")
+"""
+_GL_CHOICE: list = []  # [(name, GLContext class or None, notes)], chosen once per process
+
+
+def probe_gl(name: str, timeout: float = 120.0) -> str | None:
+    """Whether MuJoCo renders under MUJOCO_GL=`name`, tried in a fresh Python process.
+
+    Returns:
+      None if it drew a picture, else why not (the probe's last line of error).
+    """
+    env = dict(os.environ, MUJOCO_GL=name)
+    try:
+        with warnings.catch_warnings():  # JAX warns of any fork; this one execs at once
+            warnings.filterwarnings("ignore", "os.fork", RuntimeWarning)
+            proc = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True,
+                                  text=True, env=env, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return f"no picture within {timeout:.0f} s"
+    if "GL_DREW" in proc.stdout:
+        return None
+    if "GL_BLANK" in proc.stdout:
+        return "it drew a blank picture"
+    lines = [line for line in proc.stderr.strip().splitlines() if line.strip()]
+    return lines[-1].strip()[:200] if lines else f"exit code {proc.returncode}"
+
+
+def choose_gl(probe=probe_gl) -> tuple[str | None, type | None, list[str]]:
+    """The GL for MuJoCo's renderer in this process, chosen once (later calls return the same).
+
+    `MUJOCO_GL`, if set, is MuJoCo's own choice and is kept. Unset, the first of GLFW (only
+    where there is a display: `DISPLAY` or `WAYLAND_DISPLAY`), EGL and OSMesa whose subprocess
+    `probe` draws a picture.
+
+    Returns:
+      (its name, e.g. "egl", or None if none works; its `GLContext(width, height)` class;
+      notes on what was tried and failed).
+    """
+    if _GL_CHOICE:
+        return _GL_CHOICE[0]
+    name = os.environ.get("MUJOCO_GL", "").strip().lower()
+    notes = []
+    if name:
+        context = getattr(mujoco, "GLContext", None)  # what `import mujoco` chose from MUJOCO_GL
+        if context is None:
+            notes.append(f"MUJOCO_GL={name} gives MuJoCo no GL context")
+            name = None
+    else:
+        name = context = None
+        display = os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+        for candidate in ("glfw",) * bool(display) + GL_FALLBACKS:
+            why = probe(candidate)
+            if why is None:
+                try:
+                    context = importlib.import_module(f"mujoco.{candidate}").GLContext
+                except Exception as e:  # another library loaded PyOpenGL on another platform
+                    why = f"{type(e).__name__}: {e}"
+                else:
+                    name = candidate
+                    break
+            notes.append(f"{candidate}: {why}")
+        if not display:
+            notes.append("glfw: no display")
+    _GL_CHOICE.append((name, context, notes))
+    return _GL_CHOICE[0]
+
+
+def _mujoco_frames(scene: _Scene, rep: Replay, index, width: int, height: int,
+                   context_cls) -> list:
+    """MuJoCo's pictures through its low-level API on a GL context of our choice (`Renderer`
+    would take the one `import mujoco` chose)."""
     from PIL import Image, ImageDraw
 
-    renderer = mujoco.Renderer(scene.model, height, width)
+    model = scene.model
+    if width > model.vis.global_.offwidth or height > model.vis.global_.offheight:
+        raise ValueError(f"{width} x {height} exceeds the offscreen buffer "
+                         f"{model.vis.global_.offwidth} x {model.vis.global_.offheight}")
+    context = context_cls(width, height)
+    mjr = None
     try:
+        context.make_current()
+        mjv = mujoco.MjvScene(model, maxgeom=1000)
+        option = mujoco.MjvOption()
+        mjr = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, mjr)
+        rect = mujoco.MjrRect(0, 0, width, height)
+        rgb = np.zeros((height, width, 3), np.uint8)
         camera = mujoco.MjvCamera()
         camera.type = mujoco.mjtCamera.mjCAMERA_FREE
         camera.distance, camera.azimuth, camera.elevation = 2.8, 90.0, -8.0
@@ -167,13 +267,18 @@ def _mujoco_frames(scene: _Scene, rep: Replay, index, width: int, height: int) -
         for i in index:
             data = scene.pose(rep.qpos[i])
             camera.lookat[:] = (data.xpos[1, 0], 0.0, 0.35)
-            renderer.update_scene(data, camera)
-            image = Image.fromarray(renderer.render())
+            mujoco.mjv_updateScene(model, data, option, None, camera,
+                                   mujoco.mjtCatBit.mjCAT_ALL, mjv)
+            mujoco.mjr_render(rect, mjv, mjr)
+            mujoco.mjr_readPixels(rgb, None, rect, mjr)
+            image = Image.fromarray(np.flipud(rgb))  # GL's rows run bottom-up
             ImageDraw.Draw(image).text((8, 6), _caption(rep, i), fill=(20, 20, 20))
             frames.append(np.asarray(image))
         return frames
     finally:
-        renderer.close()
+        if mjr is not None:
+            mjr.free()
+        context.free()
 
 
 def _matplotlib_frames(scene: _Scene, rep: Replay, index, width: int, height: int) -> list:
@@ -229,28 +334,33 @@ def draw_frames(
     """Pictures of a replay, one every `stride` control steps (and the last).
 
     Args:
-      backend: "mujoco" (MuJoCo's renderer; fails without OpenGL), "matplotlib" (a drawing of
-        the capsules, needs no GL) or "auto" (MuJoCo's renderer if it starts, else matplotlib).
+      backend: "mujoco" (MuJoCo's renderer on `choose_gl`'s GL; fails without one),
+        "matplotlib" (a drawing of the capsules, needs no GL) or "auto" (MuJoCo's renderer if
+        it draws, else matplotlib).
     Returns:
-      (frames (height, width, 3) uint8, the backend that drew them, notes on a fallback).
+      (frames (height, width, 3) uint8, who drew them: "mujoco (GL)" or "matplotlib", notes on
+      a fallback).
     """
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; choose one of {', '.join(BACKENDS)}")
     index = sorted(set(range(0, len(rep.qpos), stride)) | {len(rep.qpos) - 1})
     notes = []
     if backend in ("auto", "mujoco"):
+        gl, context, tried = choose_gl()
         try:
+            if context is None:
+                raise RuntimeError("no GL context for MuJoCo's renderer: " + "; ".join(tried))
             with warnings.catch_warnings():  # glfw warns before it fails without a display
                 warnings.simplefilter("ignore" if backend == "auto" else "default")
-                frames = _mujoco_frames(_Scene(saved, visual=True), rep, index, width, height)
-            return frames, "mujoco", []
+                scene = _Scene(saved, visual=True)
+                frames = _mujoco_frames(scene, rep, index, width, height, context)
+            return frames, f"mujoco ({gl})", []
         except Exception as e:  # no GL context: glfw without a display, no EGL or OSMesa
             if backend == "mujoco":
                 raise
-            gl = os.environ.get("MUJOCO_GL") or "unset"
+            why = "; ".join(tried) if context is None else f"{gl}: {type(e).__name__}"
             notes.append(
-                f"no OpenGL for MuJoCo's renderer (MUJOCO_GL {gl}: {type(e).__name__}); drew "
-                "the capsules with matplotlib (MUJOCO_GL=egl or osmesa gives MuJoCo's pictures)"
+                f"no OpenGL for MuJoCo's renderer ({why}); drew the capsules with matplotlib"
             )
     return _matplotlib_frames(_Scene(saved), rep, index, width, height), "matplotlib", notes
 

@@ -3,14 +3,16 @@ on 4 devices)."""
 
 import csv
 import json
+import shutil
 import sqlite3
+from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
 
 import evojax_morph as em
-from evojax_morph import engines, run
+from evojax_morph import driver, engines, run
 
 TINY = [
     "--space",
@@ -70,9 +72,16 @@ def test_physics_that_cannot_run_exits_with_2(monkeypatch, capsys, tmp_path):
         em.FitnessConfig(physics="mujoco")
 
 
-def test_resume_matches_an_uninterrupted_run(tmp_path):
-    straight, split = tmp_path / "straight", tmp_path / "split"
-    assert run.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(straight)]) == 0
+@pytest.fixture(scope="module")
+def straight(tmp_path_factory):
+    """An uninterrupted 9-step run, seed 3 (checkpoints at steps 3, 6 and 9)."""
+    out = tmp_path_factory.mktemp("straight") / "run"
+    assert run.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)]) == 0
+    return out
+
+
+def test_resume_matches_an_uninterrupted_run(tmp_path, straight):
+    split = tmp_path / "split"
     assert (
         run.main(TINY + ["--steps", "3", "--seed", "3", "--out", str(split)]) == 0
     )  # "interrupted"
@@ -91,6 +100,54 @@ def test_resume_matches_an_uninterrupted_run(tmp_path):
     ]
     for x, y in zip(jax.tree.leaves(restore(straight)), jax.tree.leaves(restore(split))):
         np.testing.assert_array_equal(x, y)
+
+
+def _damage(checkpoint: Path) -> None:
+    """Zeros over every data file of an Orbax checkpoint, as a disk error leaves it."""
+    files = [f for f in checkpoint.rglob("*") if f.is_file() and f.parent.name == "d"]
+    assert files, f"no data files under {checkpoint}"
+    for f in files:
+        f.write_bytes(bytes(f.stat().st_size))
+
+
+def _snapshot(run_dir: Path) -> dict:
+    return {str(f.relative_to(run_dir)): f.read_bytes()
+            for f in sorted(run_dir.rglob("*")) if f.is_file()}
+
+
+def test_resume_past_a_damaged_checkpoint(tmp_path, straight, capsys):
+    """The newest checkpoint's data damaged: the resume goes on from the one before, says which
+    was skipped and why, keeps it aside, cuts metrics and the body log back, and ends as an
+    uninterrupted run. Every checkpoint damaged: exit 2 with the reasons, the directory as it
+    was."""
+    split = tmp_path / "split"
+    assert run.main(TINY + ["--steps", "6", "--seed", "3", "--out", str(split)]) == 0
+    checkpoints = split / "checkpoints"
+    assert sorted(int(d.name) for d in checkpoints.iterdir()) == [3, 6]
+    _damage(checkpoints / "6")
+
+    none = tmp_path / "none"  # a copy with both checkpoints damaged
+    shutil.copytree(split, none)
+    _damage(none / "checkpoints" / "3")
+    before = _snapshot(none)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        run.main(TINY + ["--steps", "9", "--out", str(none), "--resume"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "no checkpoint of" in err
+    assert "step 6: ValueError: DATA_LOSS" in err and "step 3: ValueError: DATA_LOSS" in err
+    assert _snapshot(none) == before  # nothing deleted, moved or rewritten
+
+    damaged = _snapshot(checkpoints / "6")
+    assert run.main(TINY + ["--steps", "9", "--out", str(split), "--resume"]) == 0
+    printed = capsys.readouterr().out
+    assert "checkpoint 6 does not read, skipped (ValueError: DATA_LOSS" in printed
+    assert "resumed at step 3" in printed
+    assert _snapshot(split / driver.DAMAGED / "6") == damaged  # kept as it was, not deleted
+    assert sorted(int(d.name) for d in checkpoints.iterdir()) == [6, 9]  # saved afresh
+    for name in ("metrics.csv", "summary.json"):
+        assert (split / name).read_text() == (straight / name).read_text(), name
+    assert log_rows(split) == log_rows(straight)
 
 
 def log_rows(run_dir):

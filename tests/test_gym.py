@@ -1,7 +1,8 @@
 """The Gymnasium adapter, driven by a masked random agent on the predefined fitness; rewards
 are checked against the space's own mutation and fitness, computed here one body at a time.
 
-sb3-contrib's MaskablePPO is not tried: it needs torch, which the test extra does not pull."""
+sb3-contrib's MaskablePPO drives it through `em.SB3EvolutionEnv` in tests/test_sb3.py (skipped
+without the `sb3` extra, which pulls torch)."""
 
 import jax.numpy as jnp
 import numpy as np

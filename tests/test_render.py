@@ -15,7 +15,7 @@ import pytest
 from PIL import Image
 
 import evojax_morph as em
-from evojax_morph import controllers, driver, ppo, render
+from evojax_morph import controllers, driver, ppo, render, video
 from evojax_morph.pipeline import Greedy, RunConfig, build
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -130,23 +130,81 @@ def test_render_command_and_its_bad_input(run_dir, tmp_path, capsys):
     assert not (out / "best.gif").exists()
 
 
-def test_mujoco_renderer_where_gl_works():
-    """MuJoCo's own pictures under MUJOCO_GL=egl (skipped where EGL gives no context)."""
-    code = (
-        "import numpy as np, evojax_morph as em\n"
-        "from evojax_morph import video\n"
-        "s = em.make_space('bad_walker')\n"
-        "saved = em.SavedController(s, None, 0, s.optimum(), None, 0.0, 'best')\n"
-        "rep = video.Replay(np.tile(s.template.qpos0, (2, 1)), np.zeros(1), 0.02)\n"
-        "frames, by, _ = video.draw_frames(saved, rep, 'mujoco', 64, 48, 1)\n"
-        "print('DRAWN', by, len(frames), frames[0].shape, frames[0].std() > 0)\n"
-    )
-    env = dict(os.environ, MUJOCO_GL="egl", JAX_PLATFORMS="cpu")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
-                          timeout=300, cwd=ROOT)
-    if "DRAWN" not in proc.stdout:
-        pytest.skip(f"no EGL context here: {proc.stderr.strip().splitlines()[-1:]}")
-    assert "DRAWN mujoco 2 (48, 64, 3) True" in proc.stdout
+_DRAW = (
+    "import numpy as np, evojax_morph as em\n"
+    "from evojax_morph import video\n"
+    "s = em.make_space('bad_walker')\n"
+    "saved = em.SavedController(s, None, 0, s.optimum(), None, 0.0, 'best')\n"
+    "rep = video.Replay(np.tile(s.template.qpos0, (2, 1)), np.zeros(1), 0.02)\n"
+    "frames, by, notes = video.draw_frames(saved, rep, 'auto', 64, 48, 1)\n"
+    "print('DRAWN', by, len(frames), frames[0].shape, frames[0].std() > 0)\n"
+    "print('NOTES', notes)\n"
+)
+# MuJoCo's own Renderer, on the GL that `import mujoco` takes from MUJOCO_GL: the reference.
+_MUJOCO_ALONE = (
+    "import mujoco\n"
+    "m = mujoco.MjModel.from_xml_string('<mujoco><worldbody><geom size=\"1\"/></worldbody>"
+    "</mujoco>')\n"
+    "r = mujoco.Renderer(m, 8, 8); d = mujoco.MjData(m); mujoco.mj_forward(m, d)\n"
+    "r.update_scene(d); print('DREW' if r.render().std() > 0 else 'BLANK'); r.close()\n"
+)
+
+
+def _python(code, **env):
+    base = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "DISPLAY",
+                                                              "WAYLAND_DISPLAY")}
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=dict(base, JAX_PLATFORMS="cpu", **env), timeout=300, cwd=ROOT)
+
+
+def test_mujoco_gl_chosen_without_a_display():
+    """With MUJOCO_GL unset and no display, `auto` draws with MuJoCo on the first of EGL and
+    OSMesa that MuJoCo's own Renderer draws with here, and says which; with neither, matplotlib
+    and why. MUJOCO_GL, when set, is kept."""
+    works = [gl for gl in video.GL_FALLBACKS
+             if "DREW" in _python(_MUJOCO_ALONE, MUJOCO_GL=gl).stdout]
+    proc = _python(_DRAW)
+    assert "DRAWN" in proc.stdout, proc.stderr[-2000:]
+    if works:
+        assert f"DRAWN mujoco ({works[0]}) 2 (48, 64, 3) True" in proc.stdout
+        assert "Exception ignored" not in proc.stderr  # the GL context was freed before exit
+        proc = _python(_DRAW, MUJOCO_GL=works[0])  # set by the user: no probe, same GL
+        assert f"DRAWN mujoco ({works[0]}) 2 (48, 64, 3) True" in proc.stdout
+    else:
+        assert "DRAWN matplotlib 2 (48, 64, 3) True" in proc.stdout
+        assert all(f"{gl}: " in proc.stdout for gl in video.GL_FALLBACKS)
+
+
+def test_gl_fallbacks_in_order_then_matplotlib(run_dir, monkeypatch, tmp_path):
+    """The GLs are probed in order (GLFW only with a display); when none draws, `auto` falls
+    back to matplotlib saying why, and `mujoco` raises, writing nothing."""
+    tried = []
+
+    def probe(name):
+        tried.append(name)
+        return f"{name} failed here"
+
+    for display, expected in [(None, ["egl", "osmesa"]), (":0", ["glfw", "egl", "osmesa"])]:
+        tried.clear()
+        monkeypatch.setattr(video, "_GL_CHOICE", [])
+        monkeypatch.delenv("MUJOCO_GL", raising=False)
+        monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+        if display:
+            monkeypatch.setenv("DISPLAY", display)
+        else:
+            monkeypatch.delenv("DISPLAY", raising=False)
+        name, context, notes = video.choose_gl(probe)
+        assert (name, context) == (None, None) and tried == expected
+        assert all(f"{gl}: {gl} failed here" in notes for gl in expected)
+        assert video.choose_gl(probe)[2] == notes and tried == expected  # chosen once
+
+    out, *_ = run_dir
+    shown = em.render_video(out, "best", tmp_path / "walk", **dict(TINY_VIDEO, backend="auto"))
+    assert shown.backend == "matplotlib"
+    assert any("egl: egl failed here" in n for n in shown.notes)
+    with pytest.raises(RuntimeError, match="osmesa failed here"):
+        em.render_video(out, "best", tmp_path / "gl", **dict(TINY_VIDEO, backend="mujoco"))
+    assert not (tmp_path / "gl.gif").exists()
 
 
 def test_console_scripts_point_at_the_commands():
