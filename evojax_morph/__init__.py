@@ -5,6 +5,7 @@ from evojax_morph.bodylog import best_bodies
 from evojax_morph.controllers import SavedController
 from evojax_morph.controllers import load as load_controller
 from evojax_morph.determinism import cpu_scheduler_workaround, deterministic_gpu
+from evojax_morph.engines import list_engines
 from evojax_morph.fitness import evaluate, init_params
 from evojax_morph.fitnesses import FitnessConfig, FitnessResult, list_fitnesses, standard_ppo
 from evojax_morph.locomotion import Locomotion, TaskConfig
@@ -35,6 +36,7 @@ __all__ = [
     "format_tree",
     "init_distributed",
     "init_params",
+    "list_engines",
     "list_fitnesses",
     "list_spaces",
     "load_controller",

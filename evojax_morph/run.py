@@ -30,18 +30,24 @@ from evojax_morph.spaces import list_spaces
 
 
 def gpu_defaults() -> dict:
-    """On a GPU the same command evaluates a larger batch with a longer PPO budget, and 4
-    controllers per body: half the noise of one for 1.8x the time (docs/benchmarks.md)."""
+    """On a GPU the same command evaluates a larger batch with a longer PPO budget, and several
+    controllers per body (`gpu_controllers`)."""
     return {
         "num_envs": 256,
         "train_steps": 50_000,
-        "controllers": 4,
         "steps": 100,
         "explore_steps": 50,
         "learning_starts": 256,
         "chunk": 10,
         "checkpoint_every": 2,
     }
+
+
+def gpu_controllers(physics: str) -> int:
+    """Controllers per body on a GPU, spending each engine's speed on a fitness with less noise
+    (docs/benchmarks.md, H100, 256 bodies of 50,000 PPO steps): 8 on MuJoCo Warp (cv 0.15,
+    noise-to-signal 0.43, 27 s of fitness a step), 4 on the JAX engine (cv 0.23, 0.60; 66 s)."""
+    return 8 if physics == "warp" else 4
 
 
 def add_distributed_flags(parser: argparse.ArgumentParser) -> None:
@@ -162,9 +168,9 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
     add(
         "--controllers",
         type=int,
-        default=defaults.controllers,
-        help="independent PPO controllers trained per body; the fitness is their mean (4 halves "
-        "one controller's noise, docs/benchmarks.md)",
+        default=None,
+        help="independent PPO controllers trained per body; the fitness is their mean (default: "
+        "1 on a CPU; on a GPU 8 with Warp, 4 with the JAX engine: docs/benchmarks.md)",
     )
     add(
         "--physics",
@@ -230,8 +236,9 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         "checkpoint_every",
         "explore_steps",
     ):
-        if getattr(args, name) < (0 if name == "train_steps" else 1):
-            parser.error(f"--{name.replace('_', '-')} must be positive, got {getattr(args, name)}")
+        value = getattr(args, name)  # None: the default, set below
+        if value is not None and value < (0 if name == "train_steps" else 1):
+            parser.error(f"--{name.replace('_', '-')} must be positive, got {value}")
     if args.horizon < 0:
         parser.error("--horizon must be >= 0")
     if args.fitness == "tame" and not args.resume:
@@ -265,10 +272,15 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
             parser.error(f"--physics: {e}")
         if fitness == "ppo":
             print(f"physics: {name} ({why})", flush=True)
+        if fitness == "ppo" and name == "warp":
+            print("physics: MuJoCo Warp orders contacts by thread timing, so this run is not "
+                  "reproducible from its seed; --physics jax is (docs/benchmarks.md)", flush=True)
         return name
 
     if not args.resume:
         args.physics = physics(args.physics, args.fitness)
+    if args.controllers is None:
+        args.controllers = gpu_controllers(args.physics) if gpu else defaults.controllers
     cfg = RunConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(RunConfig)})
     classifier = str(Path(args.classifier).resolve()) if args.classifier else ""
     table = str(Path(args.table).resolve()) if args.table else ""

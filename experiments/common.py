@@ -31,6 +31,7 @@ class Setup:
     chunk: int = 4
     hidden: int = 64
     horizon: int = 0  # 0: the space's default
+    physics: str = "jax"  # the PPO fitness's engine: jax | warp (`evojax_morph.engines`)
 
 
 def add_setup_flags(parser, seeds: int = 3, **defaults):
@@ -62,6 +63,7 @@ def run_agent(agent: str, setup: Setup, seeds: int) -> dict:
         hidden=setup.hidden,
         explore_steps=max(setup.steps // 2, 1),
         learning_starts=4 * setup.num_envs,
+        physics=setup.physics,
     )
     p = build(cfg)
     chunk = p.agent.chunk
