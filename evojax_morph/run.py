@@ -273,8 +273,9 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         if fitness == "ppo":
             print(f"physics: {name} ({why})", flush=True)
         if fitness == "ppo" and name == "warp":
-            print("physics: MuJoCo Warp orders contacts by thread timing, so this run is not "
-                  "reproducible from its seed; --physics jax is (docs/benchmarks.md)", flush=True)
+            print("physics: on a GPU MuJoCo Warp orders contacts by thread timing, so this run "
+                  "is not reproducible from its seed; --physics jax is (docs/benchmarks.md)",
+                  flush=True)
         return name
 
     if not args.resume:

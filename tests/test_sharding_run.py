@@ -1,0 +1,73 @@
+"""A run on 4 devices (a subprocess, as in test_sharding.py) resumed on one: its outputs,
+checkpoints, controllers and body log."""
+
+import json
+import sqlite3
+
+import numpy as np
+from conftest import on_four_devices
+
+from evojax_morph import run
+
+RUN_ON_FOUR = r"""
+import sys
+import jax
+from evojax_morph import run
+
+assert jax.device_count() == 4
+assert run.main(sys.argv[1:]) == 0  # a run saved on 4 devices, resumed by the caller on 1
+"""
+
+
+
+def test_a_run_on_four_devices_resumes_on_one(tmp_path):
+    out = tmp_path / "run"
+    cli = [
+        "--space",
+        "bad_walker",
+        "--steps",
+        "2",
+        "--num-envs",
+        "6",
+        "--train-steps",
+        "320",
+        "--controllers",  # two controllers per body, inherited through the run and the resume
+        "2",
+        "--chunk",
+        "1",
+        "--horizon",  # a greedy rollout of 2 evaluations, not Bad Walker's 5
+        "2",
+        "--no-gif",  # tests/test_render.py draws a run's best.gif; here it would cost a minute
+        "--out",
+        str(out),
+    ]
+    assert "on 4 cpu device(s)" in on_four_devices(RUN_ON_FOUR, *cli).stdout
+
+    # The 4-device run's outputs, then its checkpoint resumed here, on one device.
+    for name in (
+        "config.json",
+        "metrics.csv",
+        "curve.png",
+        "trajectory.png",
+        "best.xml",
+        "summary.json",
+    ):
+        assert (out / name).stat().st_size > 0, name
+    assert list((out / "tb").iterdir())  # TensorBoard events
+    import mujoco
+
+    mujoco.MjModel.from_xml_string((out / "best.xml").read_text())  # the export loads
+    assert not (out / "best.gif").exists()  # --no-gif
+    before = (out / "metrics.csv").read_text().splitlines()
+    assert run.main(["--out", str(out), "--resume", "--steps", "3", "--no-gif"]) == 0
+    after = (out / "metrics.csv").read_text().splitlines()
+    assert after[:3] == before and len(after) == 4  # steps 1-2 kept, step 3 added
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["env_steps"] == 3 and np.isfinite(summary["best_fitness"])
+    assert len(summary["greedy_trajectory"]) == 3  # m0 and 2 mutations (--horizon 2)
+    # the trained controllers of the best body and the greedy trajectory's
+    saved = sorted(d.name for d in (out / "controllers").iterdir())
+    assert saved == ["best"] + [f"step{t}" for t in range(3)] == summary["controllers"]
+    db = sqlite3.connect(out / "bodies.sqlite")
+    assert db.execute("SELECT COUNT(*), MAX(step) FROM bodies").fetchone() == (6 * 4, 3)
+    db.close()
