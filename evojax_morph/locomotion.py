@@ -1,7 +1,9 @@
 """Planar forward locomotion on a space's padded MJX model.
 
 The model is an argument of `reset` and `step`, never state on the task, so one task object
-serves every morphology of a space and a batch of models vmaps through it.
+serves every morphology of a space and a batch of models vmaps through it. `reset_worlds` and
+`step_worlds` do the same for a flat batch of worlds of different bodies on any physics engine
+(`evojax_morph.engines`), as the PPO fitness steps them; both paths share the task's code.
 """
 
 from __future__ import annotations
