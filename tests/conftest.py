@@ -10,10 +10,8 @@ import jax
 import pytest
 
 # Compiled programs survive between runs (CI reuses the machine's cache directory).
-jax.config.update(
-    "jax_compilation_cache_dir",
-    os.environ.get("EVOJAX_MORPH_JAX_CACHE", os.path.expanduser("~/.cache/evojax_morph/jax")),
-)
+CACHE = os.environ.get("EVOJAX_MORPH_JAX_CACHE", os.path.expanduser("~/.cache/evojax_morph/jax"))
+jax.config.update("jax_compilation_cache_dir", CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 import evojax_morph as em
@@ -36,7 +34,7 @@ def on_four_devices(script: str, *args: str) -> subprocess.CompletedProcess:
     env = dict(
         os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=4"
     )
-    env.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.expanduser("~/.cache/evojax_morph/jax"))
+    env.setdefault("JAX_COMPILATION_CACHE_DIR", CACHE)
     proc = subprocess.run(
         [sys.executable, "-c", script, *args], capture_output=True, text=True, env=env, timeout=900
     )
