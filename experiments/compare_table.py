@@ -1,0 +1,297 @@
+"""RL against evolution on a landscape table: which method returns the better body?
+
+Every registered agent (Double-DQN, QR-DQN, actor-critic, evolution, random walks) runs --seeds
+times on the `table` fitness of --space, each run --num-envs parallel evolutions x --steps
+steps (num_envs x steps fitness evaluations per run), at each K of --ks (the fitness of a body
+is the mean of K of its stored results, drawn anew at every evaluation). The seeds of a
+(method, K) run together under `jax.vmap`, as `experiments.common.run_agent` runs them; this
+script builds its own `RunConfig` because it sets K, the exploration schedule and the chunk.
+
+The measure is the true fitness (the table's mean over all its results) of the body each run
+returns (the agent state's `best_morph`: the body of the highest single evaluation seen), its
+regret to the table's best body and its rank (1 = best). Also kept: the true fitness of the
+best body each run ever evaluated (what it found, whether or not it returned it), and the
+number of distinct bodies it evaluated. Per method and K: median and mean regret with bootstrap
+95% intervals over seeds; pairwise, each RL agent against evolution and against random: the
+difference of mean true fitness with bootstrap 95% intervals, over seeds alone (the table's
+means taken as exact) and over seeds and the table's results (the means are estimates of S
+results each), and P(a seed of A beats a seed of B). Wall-clock: the vmapped batch of all seeds
+on this machine, compilation apart.
+
+Results are saved per (method, K) in OUT/compare_table_SPACE.json after each one; run again
+with the same flags to resume (finished pairs with the same settings are kept).
+
+  python -m experiments.compare_table --out docs/figures                      # the full run
+  python -m experiments.compare_table --steps 20 --seeds 2 --ks 1 --out /tmp/ct  # smoke
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import matplotlib.pyplot as plt
+import numpy as np
+
+from evojax_morph.agents import list_agents
+from evojax_morph.fitnesses import FitnessConfig
+from evojax_morph.fitnesses import table as table_fitness
+from evojax_morph.pipeline import RunConfig, build
+from evojax_morph.spaces import make_space
+from experiments.common import band, save
+
+RL = ("ddqn", "qrdqn", "a2c")
+BASELINES = ("evolution", "random")
+BOOT = 10_000  # bootstrap resamples
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    space: str = "bad_walker"
+    table: str = ""  # "": the space's packaged table
+    num_envs: int = 16  # parallel evolutions per run: evaluations per step
+    steps: int = 625  # environment steps per run
+    chunk: int = 25  # steps per jitted call; the curve has one point per chunk
+    hidden: int = 64
+    explore_steps: int = 250  # (qr)dqn: epsilon anneals 1 -> 0.05 over these steps
+    learning_starts: int = 256  # (qr)dqn: transitions stored before learning
+    seeds: int = 10
+
+
+def rows_fn(sigs: np.ndarray):
+    """Jitted: (..., max_nodes) bodies -> (...,) int32 row of the table (every body an agent
+    meets from m0 is in it: the table checks that when loaded)."""
+    sigs = jnp.asarray(sigs)
+
+    def row(m):
+        return jnp.argmax((sigs == table_fitness.signature(m)).all(-1)).astype(jnp.int32)
+
+    def rows(morphs):
+        lead = morphs.active.shape[:-1]
+        flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(lead):]), morphs)
+        return jax.vmap(row)(flat).reshape(lead)
+
+    return rows
+
+
+def run_method(method: str, k: int, s: Settings, true: np.ndarray, sigs) -> dict:
+    """`s.seeds` runs of `method` at K = `k`, vmapped; the rows of the bodies they return."""
+    cfg = RunConfig(space=s.space, fitness="table", table=s.table, agent=method,
+                    num_envs=s.num_envs, controllers=k, hidden=s.hidden,
+                    explore_steps=s.explore_steps, learning_starts=s.learning_starts)
+    p = build(cfg)
+    rows = rows_fn(sigs)
+
+    def step(state, n):
+        state, m = p.agent.chunk(state, n)
+        # the rows of every child evaluated (n, N) and of the returned body, not the bodies
+        return state, rows(m["bodies"]["morph"]), rows(state.best_morph)
+
+    keys = jax.random.split(jax.random.PRNGKey(0), s.seeds)
+    start = time.perf_counter()
+    states = jax.block_until_ready(jax.jit(jax.vmap(p.agent.init))(keys))
+    init_s = time.perf_counter() - start
+    fns = {}
+    done, curve, visits, seconds, compile_s = 0, [], np.zeros((s.seeds, len(true)), int), 0, 0
+    while done < s.steps:
+        n = min(s.chunk, s.steps - done)
+        if n not in fns:  # compile outside the clock
+            start = time.perf_counter()
+            fns[n] = jax.jit(jax.vmap(lambda st, n=n: step(st, n))).lower(states).compile()
+            compile_s += time.perf_counter() - start
+        start = time.perf_counter()
+        states, child_rows, best_rows = jax.block_until_ready(fns[n](states))
+        seconds += time.perf_counter() - start
+        for i, r in enumerate(np.asarray(child_rows).reshape(s.seeds, -1)):
+            visits[i] += np.bincount(r, minlength=len(true))
+        curve.append(true[np.asarray(best_rows)].tolist())
+        done += n
+    best_rows, top = np.asarray(best_rows), np.argsort(-true)[:5]
+    return {
+        "true_fitness": true[best_rows].tolist(),  # (seeds,) the returned body's table mean
+        "best_rows": best_rows.tolist(),
+        "in_run_fitness": np.asarray(states.best_fitness).tolist(),  # the draw that chose it
+        "best_visited": [float(true[v > 0].max()) for v in visits],  # best body evaluated
+        "distinct_bodies": (visits > 0).sum(1).tolist(),
+        "top_rows": top.tolist(),  # the table's 5 best bodies, best first
+        "top_visits": visits[:, top].tolist(),  # (seeds, 5) evaluations of each
+        "curve": curve,  # (chunks, seeds) true fitness of the best-so-far body
+        "seconds": seconds,  # all seeds together, compiled steps only
+        "compile_seconds": compile_s,
+        "init_seconds": init_s,
+    }
+
+
+def bootstrap(x: np.ndarray, stat, rng, boot: int = BOOT) -> list[float]:
+    """[stat, 2.5%, 97.5%] of `stat` over seeds resampled with replacement."""
+    idx = rng.integers(0, len(x), (boot, len(x)))
+    values = stat(x[idx], axis=1)
+    return [float(stat(x)), *np.quantile(values, [0.025, 0.975]).tolist()]
+
+
+def effect(a, b, true, table_means, rng) -> dict:
+    """True fitness of the bodies returned, method a against method b.
+
+    Args:
+      a, b: (seeds,) int, the table rows of the bodies each run of a and b returned.
+      true: (T,) the table's means; table_means: (BOOT, T) the same with each body's S results
+        resampled with replacement.
+    Returns:
+      mean(true[a]) - mean(true[b]) with two 95% bootstrap intervals, over seeds (the table's
+      means taken as exact) and over seeds and the table's results at once (the means are
+      estimates too), and P(a seed of a beats one of b), ties half.
+    """
+    ia = rng.integers(0, len(a), (len(table_means), len(a)))
+    ib = rng.integers(0, len(b), (len(table_means), len(b)))
+    d = true[a[ia]].mean(1) - true[b[ib]].mean(1)
+    lo, hi = np.quantile(d, [0.025, 0.975])
+    d_table = np.take_along_axis(table_means, a[ia], 1).mean(1) - np.take_along_axis(
+        table_means, b[ib], 1).mean(1)
+    tlo, thi = np.quantile(d_table, [0.025, 0.975])
+    fa, fb = true[a][:, None], true[b][None]
+    beats = np.mean((fa > fb) + 0.5 * (fa == fb))
+    return {"diff": float(true[a].mean() - true[b].mean()), "ci": [float(lo), float(hi)],
+            "significant": bool(lo > 0 or hi < 0), "ci_with_table": [float(tlo), float(thi)],
+            "significant_with_table": bool(tlo > 0 or thi < 0), "p_beats": float(beats)}
+
+
+def stats(results: dict, fitness: np.ndarray) -> dict:
+    """Per (K, method): regret and rank summaries; per K: the pairwise effects. `fitness`:
+    the table's (T, S) results."""
+    rng = np.random.default_rng(0)
+    true = fitness.mean(1)
+    resampled = rng.integers(0, fitness.shape[1], (BOOT, *fitness.shape))  # (BOOT, T, S)
+    table_means = np.take_along_axis(fitness[None], resampled, 2).mean(2)  # (BOOT, T)
+    top2 = np.argsort(-true)[:2]
+    gap = table_means[:, top2[0]] - table_means[:, top2[1]]
+    out = {"table_top2_gap": {"diff": float(true[top2[0]] - true[top2[1]]),
+                              "ci": np.quantile(gap, [0.025, 0.975]).tolist(),
+                              "p_first_better": float(np.mean(gap > 0))}}
+    best = float(true.max())
+    order = np.sort(true)[::-1]
+    for k, by_method in results.items():
+        out[k] = {}
+        fits = {m: np.asarray(r["true_fitness"]) for m, r in by_method.items()}
+        rows = {m: np.asarray(r["best_rows"]) for m, r in by_method.items()}
+        for m, f in fits.items():
+            regret = best - f
+            r = by_method[m]
+            out[k][m] = {
+                "median_regret": bootstrap(regret, np.median, rng),
+                "mean_regret": bootstrap(regret, np.mean, rng),
+                "ranks": [int(np.searchsorted(-order, -x, "left")) + 1 for x in f],
+                "found_optimum": int(np.sum(f == best)),
+                "median_best_visited_regret": float(np.median(best - np.asarray(
+                    r["best_visited"]))),
+                "median_distinct_bodies": float(np.median(r["distinct_bodies"])),
+                "seconds_per_run": r["seconds"] / len(f),
+            }
+        for a in RL:
+            for b in BASELINES:
+                if a in fits and b in fits:
+                    out[k][f"{a}-{b}"] = effect(rows[a], rows[b], true, table_means, rng)
+    return out
+
+
+def table_lines(summary: dict) -> list[str]:
+    gap = summary["stats"]["table_top2_gap"]
+    lines = [f"the table's best body minus its second: {gap['diff']:.1f} "
+             f"[{gap['ci'][0]:.1f}, {gap['ci'][1]:.1f}], P(first better) "
+             f"{gap['p_first_better']:.2f} (each body's results resampled)",
+             "K  method     median regret [95% CI]    mean regret [95% CI]      "
+             "median rank  optimum  s/run"]
+    for k in sorted(summary["results"], key=int):
+        by = summary["stats"][k]
+        for m in list_agents():
+            if m not in by:
+                continue
+            r = by[m]
+            med, mean = r["median_regret"], r["mean_regret"]
+            lines.append(
+                f"{k:<2} {m:<10} {med[0]:6.1f} [{med[1]:6.1f}, {med[2]:6.1f}]     "
+                f"{mean[0]:6.1f} [{mean[1]:6.1f}, {mean[2]:6.1f}]     "
+                f"{np.median(r['ranks']):5.1f}     {r['found_optimum']:2d}/{len(r['ranks'])}"
+                f"  {r['seconds_per_run']:6.2f}"
+            )
+        for pair, e in by.items():
+            if "-" in pair:
+                star = "*" if e["significant"] else " "
+                tstar = "*" if e["significant_with_table"] else " "
+                lines.append(f"{k:<2} {pair:<16} mean true fitness diff {e['diff']:6.1f} "
+                             f"[{e['ci'][0]:6.1f}, {e['ci'][1]:6.1f}]{star} with the table's "
+                             f"noise [{e['ci_with_table'][0]:6.1f}, {e['ci_with_table'][1]:6.1f}]"
+                             f"{tstar} P(beats) {e['p_beats']:.2f}")
+    return lines
+
+
+def main():
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    for f in dataclasses.fields(Settings):
+        parser.add_argument("--" + f.name.replace("_", "-"), type=type(f.default),
+                            default=f.default)
+    parser.add_argument("--ks", type=int, nargs="+", default=[1, 4, 16])
+    parser.add_argument("--methods", default=",".join(list_agents()),
+                        help="comma-separated subset of " + ",".join(list_agents()))
+    parser.add_argument("--out", default="runs/figures")
+    args = parser.parse_args()
+    s = Settings(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Settings)})
+    space = make_space(s.space)
+    table, sigs = table_fitness.load(space, FitnessConfig(kind="table", table=s.table))
+    true = table.mean()
+    out = Path(args.out)
+    name = f"compare_table_{s.space}"
+    path = out / f"{name}.json"
+    summary = {"settings": dataclasses.asdict(s), "evaluations_per_run": s.num_envs * s.steps,
+               "table": {"path": str(table_fitness.table_path(space, FitnessConfig(
+                   table=s.table))), "meta": table.meta, "best": float(true.max()),
+                   "best_body": table.names[int(true.argmax())]},
+               "device": f"{jax.default_backend()}: {jax.devices()[0].device_kind}",
+               "results": {}}
+    if path.exists():
+        old = json.loads(path.read_text())
+        if old.get("settings") == summary["settings"]:
+            summary["results"] = old.get("results", {})
+            print("resuming: kept", {k: list(v) for k, v in summary["results"].items()},
+                  flush=True)
+    for k in args.ks:
+        for method in args.methods.split(","):
+            if method not in list_agents():
+                raise SystemExit(f"unknown method {method!r}; choose from {list_agents()}")
+            if method in summary["results"].get(str(k), {}):
+                continue
+            start = time.time()
+            res = run_method(method, k, s, true, sigs)
+            res["date"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+            summary["results"].setdefault(str(k), {})[method] = res
+            print(f"K={k} {method}: median true fitness {np.median(res['true_fitness']):.1f}, "
+                  f"{res['seconds']:.1f} s + {res['compile_seconds']:.1f} s compiling "
+                  f"({time.time() - start:.0f} s in all)", flush=True)
+            out.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps(summary, indent=1))
+    summary["stats"] = stats(summary["results"], table.fitness)
+    print("\n".join(table_lines(summary)))
+
+    ks = sorted((k for k in summary["results"] if summary["results"][k]), key=int)
+    fig, axes = plt.subplots(1, len(ks), figsize=(4.2 * len(ks), 3.6), sharey=True, squeeze=False)
+    for ax, k in zip(axes[0], ks):
+        for method, r in summary["results"][k].items():
+            curve = np.asarray(r["curve"])
+            x = s.num_envs * np.minimum(s.chunk * np.arange(1, len(curve) + 1), s.steps)
+            band(ax, x, curve, method)
+        ax.axhline(true.max(), color="k", lw=0.8, ls=":")
+        ax.set(title=f"K = {k}", xlabel="fitness evaluations per run")
+    axes[0][0].set(ylabel="true fitness of the body returned")
+    axes[0][0].legend(fontsize=8)
+    fig.suptitle(f"{s.space} table, {s.seeds} seeds: median, .25-.75 band")
+    save(fig, out, name, summary)
+
+
+if __name__ == "__main__":
+    main()
