@@ -13,8 +13,8 @@ Each engine runs in its own call (Warp may be installed later than JAX), its res
 
   python -m experiments.engine_agreement --physics jax --out runs/agreement
   python -m experiments.engine_agreement --physics warp --out runs/agreement
-  python -m experiments.engine_agreement --compare --out runs/agreement \\
-      --landscapes runs/rel/reliability_standard.json runs/rel/reliability_standard_bad_walker_warp.json
+  python -m experiments.engine_agreement --compare --out runs/agreement --landscapes \\
+      runs/rel/reliability_standard.json runs/rel/reliability_standard_bad_walker_warp.json
   python -m experiments.engine_agreement --physics jax --seeds 2 --train-steps 320   # CPU smoke
 """
 

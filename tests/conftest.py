@@ -22,11 +22,17 @@ def space(request):
     return em.make_space(request.param)
 
 
+# The longest files first, in this order (pyproject's --no-loadscope-reorder keeps it: xdist
+# would otherwise start the files with the most tests first and these two 4-device
+# subprocesses, one test each, last, ending the suite alone).
+FIRST = ("test_sharding.py", "test_sharding_run.py", "test_fitness.py", "test_physics.py",
+         "test_warp.py", "test_tame.py", "test_render.py", "test_search.py", "test_cli.py")
+
+
 def pytest_collection_modifyitems(config, items):
-    """The longest files first: with two workers taking a file each (pyproject's addopts), the
-    two 4-device subprocesses (test_sharding*.py) start at once, one per worker, and overlap
-    the rest instead of ending the suite alone."""
-    items.sort(key=lambda item: not item.path.name.startswith("test_sharding"))
+    """Files in the order of FIRST, then the rest; two workers take a file each."""
+    rank = lambda item: FIRST.index(item.path.name) if item.path.name in FIRST else len(FIRST)
+    items.sort(key=rank)
 
 
 def on_four_devices(script: str, *args: str) -> subprocess.CompletedProcess:
