@@ -80,45 +80,29 @@ JAX = Engine(
     make_data=_jax_make_data,
     step=_per_body(mjx.step),
     forward=_per_body(mjx.forward),
-    where=lambda done, on_true, on_false: tree_select(done, on_true, on_false),
+    where=tree_select,
 )
 
 
-def _warp_available() -> tuple[bool, str]:
+def _warp():
+    """evojax_morph.warp, imported on first use (it needs the optional MuJoCo Warp)."""
     from evojax_morph import warp
 
-    return warp.available()
-
-
-def _warp_prepare(space: Space, models: mjx.Model, worlds_per_body: int):
-    from evojax_morph import warp
-
-    return warp.world_model(space, models, worlds_per_body)
-
-
-def _warp_make_data(model, space: Space, n: int) -> mjx.Data:
-    from evojax_morph import warp
-
-    del model
-    return warp.make_worlds(space.template, n)
-
-
-def _warp_where(done: jax.Array, on_true: mjx.Data, on_false: mjx.Data) -> mjx.Data:
-    from evojax_morph import warp
-
-    return warp.where_worlds(done, on_true, on_false)
+    return warp
 
 
 _flat = lambda fn: lambda model, data: jax.vmap(fn, (None, 0))(model, data)
 
 WARP = Engine(
     name="warp",
-    available=_warp_available,
-    prepare=_warp_prepare,
-    make_data=_warp_make_data,
+    available=lambda: _warp().available(),
+    prepare=lambda space, models, worlds_per_body: _warp().world_model(
+        space, models, worlds_per_body
+    ),
+    make_data=lambda worlds, space, n: _warp().make_worlds(space.template, n),
     step=_flat(mjx.step),
     forward=_flat(mjx.forward),
-    where=_warp_where,
+    where=lambda done, on_true, on_false: _warp().where_worlds(done, on_true, on_false),
 )
 
 _REGISTRY: dict[str, Engine] = {e.name: e for e in (JAX, WARP)}
