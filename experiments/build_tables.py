@@ -13,6 +13,11 @@ sessions (a few minutes of H200 per space and 32 seeds: see the table's metadata
   python -m experiments.build_tables --space bad_walker --seeds 2 --train-steps 320 \\
       --out /tmp/bw.npz                                                         # CPU check
 
+Deep rows: with --deep-top N --deep-seeds S2, once every body has its --seeds results, the N
+bodies with the highest means get results --seeds .. S2-1 as well (the same keys, continued),
+enough to tell the best bodies apart; the other rows stay at --seeds (NaN-padded). The deep
+rows are chosen by the means of the --seeds results and recorded in the metadata ("deep").
+
 Writes evojax_morph/tables/SPACE.npz by default (the table fitness's packaged table).
 """
 
@@ -77,6 +82,30 @@ def settings(space: em.Space, cfg: em.FitnessConfig, args, names: list[str]) -> 
     }
 
 
+def deepen(table: tables.Table, top: int, seeds: int) -> None:
+    """Widens `table` to `seeds` columns and marks its `top` best rows (by their mean over the
+    base results) deep; the new columns are NaN (to be measured) in those rows only."""
+    base = table.base
+    rows = table.meta.get("deep", {}).get("rows")
+    if rows is None:
+        rows = [int(k) for k in np.argsort(-table.fitness[:, :base].mean(1), kind="stable")[:top]]
+    wide = max(seeds, table.seeds)
+    if wide > table.seeds:
+        pad = lambda a, fill: np.concatenate(  # noqa: E731
+            [a, np.full((a.shape[0], wide - a.shape[1]), fill, a.dtype)], 1)
+        table.fitness, table.diverged = pad(table.fitness, np.nan), pad(table.diverged, False)
+    table.meta["deep"] = {"top": top, "seeds": wide, "rows": rows,
+                          "chosen_by": f"the mean of the first {base} results"}
+
+
+def wanted(table: tables.Table) -> np.ndarray:
+    """(T, S) bool: the results still to measure: the base of every row, all of a deep row."""
+    want = np.zeros(table.fitness.shape, bool)
+    want[:, : table.base] = True
+    want[table.meta.get("deep", {}).get("rows", []), :] = True
+    return want & ~table.done
+
+
 def build(args) -> tables.Table:
     space = em.make_space(args.space)
     cfg = fitness_config(args)
@@ -100,9 +129,15 @@ def build(args) -> tables.Table:
             np.zeros((len(bodies), args.seeds), bool),
             {**want, "seconds": 0.0, "batches": []},
         )
-    jobs = [(k, s) for k, s in np.argwhere(~table.done)]
+    if args.deep_top:
+        if not table.complete:
+            print(f"deep rows wait for the base: {int(wanted(table).sum())} results first")
+        else:
+            deepen(table, args.deep_top, args.deep_seeds)
+    jobs = [(k, s) for k, s in np.argwhere(wanted(table))]
     key = jax.random.PRNGKey(args.seed)
-    batch = min(args.batch, table.done.size)  # one shape for every call, a full build or a rest
+    # one shape for every call, a full build or a rest
+    batch = min(args.batch, len(names) * max(args.seeds, args.deep_seeds if args.deep_top else 0))
     for n, start in enumerate(range(0, len(jobs), batch)):
         if args.max_batches is not None and n >= args.max_batches:
             print(f"stopped after {n} batches (--max-batches); rerun to continue")
@@ -132,12 +167,16 @@ def build(args) -> tables.Table:
                                       "seconds": round(seconds, 2)})
         table.save(out)
         print(f"batch {n + 1}: {len(part)} results in {seconds:.1f} s, "
-              f"{int(table.done.sum())} of {table.done.size} done", flush=True)
-    if table.done.all():
+              f"{int(wanted(table).sum())} to go", flush=True)
+    if args.deep_top and table.complete and "deep" not in table.meta:
+        return build(args)  # the base just completed: now the deep rows
+    if table.complete and not wanted(table).any():
         mean = table.mean()
-        print(f"{out}: complete, {len(names)} bodies x {args.seeds} results; best mean "
-              f"{mean.max():.4g} ({names[int(mean.argmax())]}), m0 {mean[0]:.4g}, "
-              f"{out.stat().st_size / 1024:.0f} KB")
+        deep = table.meta.get("deep")
+        print(f"{out}: complete, {len(names)} bodies x {args.seeds} results"
+              + (f", the {deep['top']} best x {deep['seeds']}" if deep else "")
+              + f"; best mean {mean.max():.4g} ({names[int(mean.argmax())]}), m0 "
+              f"{mean[0]:.4g}, {out.stat().st_size / 1024:.0f} KB")
     return table
 
 
@@ -157,6 +196,9 @@ def main(argv: list[str] | None = None) -> int:
     add("--seed", type=int, default=0, help="the results' keys derive from it")
     add("--out", default=None, help="the table (.npz); default: evojax_morph/tables/SPACE.npz")
     add("--max-batches", type=int, default=None, help="stop after this many batches")
+    add("--deep-top", type=int, default=0,
+        help="give the N bodies of the highest means --deep-seeds results (0: none)")
+    add("--deep-seeds", type=int, default=256, help="results of each deep row")
     add("--fitness", default="ppo", choices=["ppo", "predefined"],
         help="predefined: a table of the deterministic fitness, for tests of the machinery")
     add("--fast-gpu", action="store_true",
@@ -165,8 +207,11 @@ def main(argv: list[str] | None = None) -> int:
         field = {f.name: f for f in dataclasses.fields(em.FitnessConfig)}[name]
         add(f"--{name}", default=field.default, help=f"FitnessConfig.{name}")
     args = parser.parse_args(argv)
-    if args.seeds < 1 or args.batch < 1 or args.train_steps < 0:
-        parser.error("--seeds and --batch must be positive, --train-steps at least 0")
+    if args.seeds < 1 or args.batch < 1 or args.train_steps < 0 or args.deep_top < 0:
+        parser.error("--seeds and --batch must be positive, --train-steps and --deep-top at "
+                     "least 0")
+    if args.deep_top and args.deep_seeds <= args.seeds:
+        parser.error("--deep-seeds must exceed --seeds")
     args.out = args.out or str(tables.default_path(args.space))
     args.argv = argv
     jax.config.update("jax_default_matmul_precision", "highest")  # as the run command

@@ -215,3 +215,45 @@ def test_run_command_with_the_table(walker, tmp_path):
     with pytest.raises(SystemExit) as e:
         run.main(args[:4] + ["--table", str(tmp_path / "none.npz"), "--out", str(tmp_path / "x")])
     assert e.value.code == 2
+
+
+def test_deep_rows_are_built_and_drawn_from(walker, tmp_path, monkeypatch):
+    """`--deep-top 3 --deep-seeds 5` gives the 3 bodies of the highest base means 5 results
+    (the keys of the base continued: none measured twice), the others keep 2 (NaN beyond);
+    the table fitness draws K among a row's measured results only, all of them in a deep row."""
+    space, bodies, names = walker
+    out = str(tmp_path / "deep.npz")
+    evaluated = []
+    real = em.evaluate
+
+    def counting(space, morphs, keys, cfg):
+        evaluated.append(np.asarray(keys))
+        return real(space, morphs, keys, cfg)
+
+    monkeypatch.setattr(em, "evaluate", counting)
+    build_tables.main(["--space", "bad_walker", "--fitness", "predefined", "--seeds", "2",
+                       "--batch", "64", "--deep-top", "3", "--deep-seeds", "5", "--out", out])
+    table = tb.Table.load(out)
+    want = np.asarray(jax.vmap(space.predefined_fitness)(em.stack(bodies)))
+    deep = table.meta["deep"]["rows"]
+    assert sorted(deep) == sorted(np.argsort(-want, kind="stable")[:3].tolist())
+    counts = table.counts()
+    assert table.seeds == 5 and table.base == 2 and table.complete
+    assert (counts[deep] == 5).all() and (np.delete(counts, deep) == 2).all()
+    np.testing.assert_allclose(table.mean(), want, rtol=1e-6)
+    keys = np.concatenate(evaluated)
+    assert len({k.tobytes() for k in keys}) == 90 * 2 + 3 * 3  # the padding repeats a key
+    # draws: a synthetic table with 3 base results and 6 in m0's row
+    syn = synthetic(walker, tmp_path / "t.npz")
+    syn.fitness[1:, 3:] = np.nan
+    syn.meta["seeds"] = 3
+    syn.save(tmp_path / "t.npz")
+    for row, expect in ((0, 2**SEEDS - 1), (7, 2**3 - 1)):
+        res = real(space, em.stack([bodies[row]] * 60), jax.random.PRNGKey(3),
+                   config(tmp_path / "t.npz", 3))
+        fitness = np.asarray(res.fitness)
+        assert np.isfinite(fitness).all()
+        sums = np.round((fitness - 1000 * row) * 3).astype(int)
+        assert np.bitwise_or.reduce(sums) == expect
+    with pytest.raises(ValueError, match="holds 3 results"):
+        real(space, em.stack([bodies[0]]), jax.random.PRNGKey(3), config(tmp_path / "t.npz", 4))

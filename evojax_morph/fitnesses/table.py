@@ -49,31 +49,53 @@ def table_path(space: Space, cfg: FitnessConfig) -> Path:
 
 @dataclasses.dataclass
 class Table:
-    """S stored fitness results of each of T bodies; a NaN result is not measured yet.
+    """Stored fitness results of each of T bodies; a NaN result is not measured (yet).
 
+    Every body has the table's `base` results (`meta["seeds"]`, 32 in the packaged tables);
+    the bodies with the highest means may have more, up to S (deep rows, so that the best
+    bodies can be told apart: `build_tables --deep-top`), NaN beyond a row's own count.
     Saved as one compressed .npz (a few tens of KB for 256 bodies x 32 results).
     """
 
     space: str
     names: list[str]  # (T,) canonical names (`Space.canonical`)
     bodies: Morphology  # (T, max_nodes, ...) the bodies, as numpy arrays
-    fitness: np.ndarray  # (T, S) float32; NaN where not measured yet
+    fitness: np.ndarray  # (T, S) float32; NaN where not measured
     diverged: np.ndarray  # (T, S) bool: the result's simulation diverged (fitness zeroed)
     meta: dict  # how the results were made: settings, engine, device, date, revision, ...
 
     @property
     def seeds(self) -> int:
+        """S: the most results a row can hold."""
         return self.fitness.shape[1]
+
+    @property
+    def base(self) -> int:
+        """The results every body has (the deep rows have more)."""
+        return int(self.meta.get("seeds", self.seeds))
 
     @property
     def done(self) -> np.ndarray:
         """(T, S) bool: the results measured."""
         return ~np.isnan(self.fitness)
 
+    @property
+    def complete(self) -> bool:
+        """Every body has its `base` results."""
+        return bool(self.done[:, : self.base].all())
+
+    def counts(self) -> np.ndarray:
+        """(T,) int: the results of each body."""
+        return self.done.sum(1)
+
     def mean(self) -> np.ndarray:
         """(T,) each body's mean over its results: its true fitness, as far as the table
         knows."""
-        return self.fitness.mean(1)
+        return np.nanmean(self.fitness, 1)
+
+    def sem(self) -> np.ndarray:
+        """(T,) the standard error of each body's mean."""
+        return np.nanstd(self.fitness, 1, ddof=1) / np.sqrt(self.counts())
 
     def row(self, space: Space, m: Morphology) -> int:
         """The row of body `m` (outside jit); a ValueError naming it if the table lacks it."""
@@ -166,9 +188,9 @@ def _prepared(space: Space, path: str, mtime_ns: int):
     table = Table.load(path)
     if table.space != space.name:
         raise ValueError(f"the table {path} is of {table.space}, not {space.name}")
-    if not table.done.all():
-        raise ValueError(f"the table {path} is incomplete ({table.done.sum()} of "
-                         f"{table.done.size} results): resume its build")
+    if not table.complete:
+        raise ValueError(f"the table {path} is incomplete ({table.done[:, :table.base].sum()} "
+                         f"of {table.done[:, :table.base].size} results): resume its build")
     sigs = np.asarray(jax.jit(jax.vmap(signature))(table.bodies))
     if len({tuple(s) for s in sigs}) != len(sigs):
         raise ValueError(f"two bodies of the table {path} share a signature")
@@ -228,19 +250,22 @@ def load(space: Space, cfg: FitnessConfig) -> tuple[Table, np.ndarray]:
 def make(space: Space, cfg: FitnessConfig):
     table, sigs_np = load(space, cfg)
     k, seeds = cfg.ppo.controllers, table.seeds
-    if k > seeds:
-        raise ValueError(f"{k} controllers per body, but the table holds {seeds} results a body")
+    if k > table.base:
+        raise ValueError(f"{k} controllers per body, but the table holds {table.base} results "
+                         "a body")
     sigs = jnp.asarray(sigs_np)
     fitness, diverged = jnp.asarray(table.fitness), jnp.asarray(table.diverged)
+    measured = jnp.asarray(table.done)
     env_steps = k * int(table.meta.get("env_steps_per_result", 0))
     name = table_path(space, cfg)
 
     def one(key: jax.Array, m: Morphology):
         hit = (sigs == signature(m)).all(-1)  # (T,)
         row = jnp.argmax(hit)
-        # k distinct results: the k largest of S uniforms (10x faster than random.choice's
-        # permutation on the CPU)
-        draws = jax.lax.top_k(jax.random.uniform(key, (seeds,)), k)[1]
+        # k distinct measured results: the k largest of S uniforms, -1 where a deep row's
+        # column is unmeasured (10x faster than random.choice's permutation on the CPU)
+        uniform = jax.random.uniform(key, (seeds,))
+        draws = jax.lax.top_k(jnp.where(measured[row], uniform, -1.0), k)[1]
         values = fitness[row, draws]
         found = hit.any()
         nan = jnp.float32(jnp.nan)
