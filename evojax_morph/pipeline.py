@@ -30,7 +30,7 @@ class RunConfig:
     fitness: str = "ppo"  # a registered fitness kind: ppo | predefined | tame | table
     classifier: str = ""  # tame: directory of the trained classifier
     table: str = ""  # table: the landscape table (.npz); "": the space's packaged one
-    agent: str = "ddqn"  # a registered agent: ddqn | qrdqn | a2c | random | evolution
+    agent: str = "ddqn"  # a registered agent: ddqn | dqn | qrdqn | a2c | random | evolution
     steps: int = 40  # environment steps; each mutates every parallel evolution once
     seed: int = 0
     num_envs: int = 4  # parallel evolutions, each step's fitness batch

@@ -128,8 +128,8 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         "--agent",
         default=defaults.agent,
         choices=agents.list_agents(),
-        help="who chooses the mutations: ddqn (Double-DQN), qrdqn (quantile-regression DQN), a2c "
-        "(actor-critic), or the baselines "
+        help="who chooses the mutations: ddqn (Double-DQN), dqn (plain DQN), qrdqn "
+        "(quantile-regression DQN), a2c (actor-critic), or the baselines "
         "random (random mutation walks) and evolution (a population, random mutations, the "
         "fittest survive)",
     )
@@ -191,13 +191,13 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         "--explore-steps",
         type=int,
         default=defaults.explore_steps,
-        help="ddqn, qrdqn: environment steps of epsilon annealing",
+        help="ddqn, dqn, qrdqn: environment steps of epsilon annealing",
     )
     add(
         "--learning-starts",
         type=int,
         default=defaults.learning_starts,
-        help="ddqn, qrdqn: transitions stored before learning",
+        help="ddqn, dqn, qrdqn: transitions stored before learning",
     )
     add(
         "--chunk",

@@ -29,6 +29,14 @@ def test_double_q_target_by_hand():
     # row 1: terminal, nothing bootstrapped: 2
     # row 2: no valid action, nothing to bootstrap: 3
     np.testing.assert_allclose(got, [28.0, 2.0, 3.0])
+    # plain DQN ("dqn") picks a' with the target network too: the max over its valid values,
+    # row 1 not terminal now: 2 + 0.9 * max(40, 50), where Double-DQN's online net picks 40
+    terminal = jnp.array([0.0, 0.0, 0.0])
+    plain = dqn.double_q_target(reward, terminal, 0.9, q_target, q_target, mask)
+    double = dqn.double_q_target(reward, terminal, 0.9, q_online, q_target, mask)
+    np.testing.assert_allclose(plain, [28.0, 47.0, 3.0])
+    np.testing.assert_allclose(double, [28.0, 38.0, 3.0])
+    assert not dqn.PlainDQNConfig().double and dqn.DQNConfig().double
 
 
 def test_quantile_target_and_loss_by_hand():

@@ -33,6 +33,7 @@ class AgentKind(NamedTuple):
 
 _REGISTRY: dict[str, AgentKind] = {
     "ddqn": AgentKind(dqn.DQNConfig, dqn.make_policy),
+    "dqn": AgentKind(dqn.PlainDQNConfig, dqn.make_policy),
     "qrdqn": AgentKind(qrdqn.QRDQNConfig, qrdqn.make_policy),
     "a2c": AgentKind(a2c.A2CConfig, a2c.make_policy),
     "random": AgentKind(None, baselines.make_policy),

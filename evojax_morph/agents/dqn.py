@@ -1,5 +1,8 @@
 """Double-DQN over mutations, with a jraph GNN Q-network: one Q-value per (node, mutation).
 
+`DQNConfig(double=False)` (the registered agent "dqn") is plain DQN (Mnih et al. 2015): the
+target network both picks and values the next action, the max that Double Q-learning corrects.
+
 Acts epsilon-greedily over valid actions, stores every transition in a ring buffer inside the
 jitted state and takes `updates_per_step` minibatch steps per environment step; the shared loop
 (`agents.base`) does the rest. The network (`q_network`) and the replay learning
@@ -39,6 +42,7 @@ class DQNConfig:
     epsilon_steps: int = 100  # env steps of linear annealing
     reward_scale: float = 1.0  # rewards are multiplied by this before learning
     max_grad_norm: float = 10.0
+    double: bool = True  # Double Q-learning's target; False: plain DQN's max over the target net
 
     @classmethod
     def for_run(cls, env: EvolutionEnv, run: RunOptions) -> DQNConfig:
@@ -47,6 +51,13 @@ class DQNConfig:
         return cls(hidden=run.hidden, reward_scale=run.reward_scale,
                    epsilon_steps=run.explore_steps, learning_starts=run.learning_starts,
                    batch_size=32)
+
+
+@dataclasses.dataclass(frozen=True)
+class PlainDQNConfig(DQNConfig):
+    """Plain DQN's settings: `DQNConfig` with DQN's own target (the agent "dqn")."""
+
+    double: bool = False
 
 
 @struct.dataclass
@@ -212,8 +223,8 @@ def make_policy(env: EvolutionEnv, cfg: DQNConfig) -> Policy:
             reward,
             terminal.astype(q.dtype),
             cfg.discount,
-            q_fn(params, next_obs),
-            q_fn(target_params, next_obs),
+            q_fn(params if cfg.double else target_params, next_obs),  # picks a'
+            q_fn(target_params, next_obs),  # values it
             next_obs.mask,
         )
         return jnp.mean(optax.huber_loss(q_taken, jax.lax.stop_gradient(target)))
