@@ -105,6 +105,7 @@ def band(ax, x, y, label, color=None):
     med, lo, hi = np.median(y, -1), np.quantile(y, 0.25, -1), np.quantile(y, 0.75, -1)
     (line,) = ax.plot(x, med, label=label, color=color)
     ax.fill_between(x, lo, hi, alpha=0.25, color=line.get_color())
+    return line
 
 
 def save(fig, out, name: str, summary: dict):

@@ -8,8 +8,14 @@ is the mean of K of its stored results, drawn anew at every evaluation). The see
 script builds its own `RunConfig` because it sets K, the exploration schedule and the chunk.
 
 The measure is the true fitness (the table's mean over all its results) of the body each run
-returns (the agent state's `best_morph`: the body of the highest single evaluation seen), its
-regret to the table's best body and its rank (1 = best). Also kept: the true fitness of the
+returns, its regret to the table's best body and its rank (1 = best), under two rules for what
+a run returns: "draw", the body of the highest single evaluation seen (the agent state's
+`best_morph`), and "confirmed", `run`'s confirm stage on the run's own draws (the --confirm
+bodies of the highest mean over the run's evaluations, ties to the more evaluated, each
+evaluated afresh as the mean of --confirm-draws results drawn from the table; the best of
+those; its cost, confirm x confirm-draws results, is not counted in the run's evaluations). A
+regret is also judged against what the table can tell apart: the bodies whose difference to
+the table's best has a bootstrap 95% interval (over each body's results) containing 0. Also kept: the true fitness of the
 best body each run ever evaluated (what it found, whether or not it returned it), and the
 number of distinct bodies it evaluated. Per method and K: median and mean regret with bootstrap
 95% intervals over seeds; pairwise, each RL agent against evolution and against random: the
@@ -38,6 +44,7 @@ import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
 
+import evojax_morph as em
 from evojax_morph.agents import list_agents
 from evojax_morph.fitnesses import FitnessConfig
 from evojax_morph.fitnesses import table as table_fitness
@@ -45,9 +52,11 @@ from evojax_morph.pipeline import RunConfig, build
 from evojax_morph.spaces import make_space
 from experiments.common import band, save
 
-RL = ("ddqn", "qrdqn", "a2c")
+RL = ("ddqn", "dqn", "qrdqn", "a2c")
+RULES = ("draw", "confirmed")  # what a run returns: see the module's docstring
 BASELINES = ("evolution", "random")
 BOOT = 10_000  # bootstrap resamples
+CONFIRM_SEED = 1_000_003  # the confirming draws' key (the runs use PRNGKey(0))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,6 +70,8 @@ class Settings:
     explore_steps: int = 250  # (qr)dqn: epsilon anneals 1 -> 0.05 over these steps
     learning_starts: int = 256  # (qr)dqn: transitions stored before learning
     seeds: int = 10
+    confirm: int = 8  # the confirmed rule: bodies re-evaluated at the end of a run
+    confirm_draws: int = 32  # results drawn from the table for each
 
 
 def rows_fn(sigs: np.ndarray):
@@ -79,7 +90,31 @@ def rows_fn(sigs: np.ndarray):
     return rows
 
 
-def run_method(method: str, k: int, s: Settings, true: np.ndarray, sigs) -> dict:
+def confirm_rows(visits, sums, s: Settings, space, table, cfg) -> tuple[np.ndarray, np.ndarray]:
+    """The confirmed rule: per seed, the `s.confirm` bodies of the highest mean over the run's
+    own evaluations (ties to the more evaluated, then the lower row), each the mean of
+    `s.confirm_draws` fresh results drawn from the table (the table fitness at K =
+    confirm_draws, one call for all seeds); the best of them.
+
+    Args:
+      visits, sums: (seeds, T) evaluations of each row in each run and their fitness sum.
+    Returns:
+      (seeds,) rows returned and (seeds,) their confirming means.
+    """
+    mean = np.where(visits > 0, sums / np.maximum(visits, 1), -np.inf)
+    order = np.lexsort((np.arange(mean.shape[1])[None].repeat(len(mean), 0), -visits, -mean))
+    cand = order[:, : s.confirm]  # (seeds, n), lexsort sorts by its last key first
+    cand = np.where(np.take_along_axis(visits, cand, 1) > 0, cand, cand[:, :1])
+    bodies = jax.tree.map(lambda x: x[cand.reshape(-1)], table.bodies)
+    confirm_cfg = dataclasses.replace(cfg, ppo=dataclasses.replace(
+        cfg.ppo, controllers=s.confirm_draws))
+    res = em.evaluate(space, bodies, jax.random.PRNGKey(CONFIRM_SEED), confirm_cfg)
+    means = np.asarray(res.fitness).reshape(cand.shape)
+    pick = means.argmax(1)
+    return cand[np.arange(len(cand)), pick], means[np.arange(len(cand)), pick]
+
+
+def run_method(method: str, k: int, s: Settings, true: np.ndarray, sigs, table) -> dict:
     """`s.seeds` runs of `method` at K = `k`, vmapped; the rows of the bodies they return."""
     cfg = RunConfig(space=s.space, fitness="table", table=s.table, agent=method,
                     num_envs=s.num_envs, controllers=k, hidden=s.hidden,
@@ -89,15 +124,16 @@ def run_method(method: str, k: int, s: Settings, true: np.ndarray, sigs) -> dict
 
     def step(state, n):
         state, m = p.agent.chunk(state, n)
-        # the rows of every child evaluated (n, N) and of the returned body, not the bodies
-        return state, rows(m["bodies"]["morph"]), rows(state.best_morph)
+        # the rows of every child evaluated (n, N) with its fitness, and of the returned body
+        return state, rows(m["bodies"]["morph"]), m["fitness"], rows(state.best_morph)
 
     keys = jax.random.split(jax.random.PRNGKey(0), s.seeds)
     start = time.perf_counter()
     states = jax.block_until_ready(jax.jit(jax.vmap(p.agent.init))(keys))
     init_s = time.perf_counter() - start
     fns = {}
-    done, curve, visits, seconds, compile_s = 0, [], np.zeros((s.seeds, len(true)), int), 0, 0
+    done, curve, seconds, compile_s = 0, [], 0, 0
+    visits, sums = np.zeros((s.seeds, len(true)), int), np.zeros((s.seeds, len(true)))
     while done < s.steps:
         n = min(s.chunk, s.steps - done)
         if n not in fns:  # compile outside the clock
@@ -105,16 +141,22 @@ def run_method(method: str, k: int, s: Settings, true: np.ndarray, sigs) -> dict
             fns[n] = jax.jit(jax.vmap(lambda st, n=n: step(st, n))).lower(states).compile()
             compile_s += time.perf_counter() - start
         start = time.perf_counter()
-        states, child_rows, best_rows = jax.block_until_ready(fns[n](states))
+        states, child_rows, fitness, best_rows = jax.block_until_ready(fns[n](states))
         seconds += time.perf_counter() - start
+        fitness = np.asarray(fitness).reshape(s.seeds, -1)
         for i, r in enumerate(np.asarray(child_rows).reshape(s.seeds, -1)):
             visits[i] += np.bincount(r, minlength=len(true))
+            sums[i] += np.bincount(r, fitness[i], minlength=len(true))
         curve.append(true[np.asarray(best_rows)].tolist())
         done += n
     best_rows, top = np.asarray(best_rows), np.argsort(-true)[:5]
+    confirmed, confirmed_mean = confirm_rows(visits, sums, s, p.space, table, p.fitness)
     return {
         "true_fitness": true[best_rows].tolist(),  # (seeds,) the returned body's table mean
         "best_rows": best_rows.tolist(),
+        "confirmed_true_fitness": true[confirmed].tolist(),  # the same, the confirmed rule
+        "confirmed_rows": confirmed.tolist(),
+        "confirmed_mean": confirmed_mean.tolist(),  # the confirming draws' mean
         "in_run_fitness": np.asarray(states.best_fitness).tolist(),  # the draw that chose it
         "best_visited": [float(true[v > 0].max()) for v in visits],  # best body evaluated
         "distinct_bodies": (visits > 0).sum(1).tolist(),
@@ -160,72 +202,93 @@ def effect(a, b, true, table_means, rng) -> dict:
             "significant_with_table": bool(tlo > 0 or thi < 0), "p_beats": float(beats)}
 
 
+def resampled_means(fitness: np.ndarray, rng, boot: int = BOOT) -> np.ndarray:
+    """(boot, T) each body's mean over its measured results resampled with replacement (a row
+    holds its results first, NaN after: the deep rows hold more)."""
+    counts = (~np.isnan(fitness)).sum(1)
+    out = np.empty((boot, len(fitness)))
+    for r, n in enumerate(counts):
+        out[:, r] = fitness[r, rng.integers(0, n, (boot, n))].mean(1)
+    return out
+
+
 def stats(results: dict, fitness: np.ndarray) -> dict:
-    """Per (K, method): regret and rank summaries; per K: the pairwise effects. `fitness`:
-    the table's (T, S) results."""
+    """Per (K, rule, method): regret and rank summaries; per (K, rule): the pairwise effects.
+    `fitness`: the table's (T, S) results, NaN where a row has fewer."""
     rng = np.random.default_rng(0)
-    true = fitness.mean(1)
-    resampled = rng.integers(0, fitness.shape[1], (BOOT, *fitness.shape))  # (BOOT, T, S)
-    table_means = np.take_along_axis(fitness[None], resampled, 2).mean(2)  # (BOOT, T)
-    top2 = np.argsort(-true)[:2]
-    gap = table_means[:, top2[0]] - table_means[:, top2[1]]
-    out = {"table_top2_gap": {"diff": float(true[top2[0]] - true[top2[1]]),
+    true = np.nanmean(fitness, 1)
+    table_means = resampled_means(fitness, rng)  # (BOOT, T)
+    order = np.argsort(-true)
+    gap = table_means[:, order[0]] - table_means[:, order[1]]
+    behind = table_means[:, order[0], None] - table_means  # (BOOT, T): the best minus each
+    tied = np.quantile(behind, 0.025, axis=0) <= 0  # 95% interval of the difference holds 0
+    out = {"table_top2_gap": {"diff": float(true[order[0]] - true[order[1]]),
                               "ci": np.quantile(gap, [0.025, 0.975]).tolist(),
-                              "p_first_better": float(np.mean(gap > 0))}}
+                              "p_first_better": float(np.mean(gap > 0)),
+                              "results": [int(n) for n in (~np.isnan(fitness[order[:2]])).sum(1)]},
+           "indistinguishable_from_best": [int(r) for r in order if tied[r]]}
     best = float(true.max())
-    order = np.sort(true)[::-1]
+    ranked = np.sort(true)[::-1]
     for k, by_method in results.items():
         out[k] = {}
-        fits = {m: np.asarray(r["true_fitness"]) for m, r in by_method.items()}
-        rows = {m: np.asarray(r["best_rows"]) for m, r in by_method.items()}
-        for m, f in fits.items():
-            regret = best - f
-            r = by_method[m]
-            out[k][m] = {
-                "median_regret": bootstrap(regret, np.median, rng),
-                "mean_regret": bootstrap(regret, np.mean, rng),
-                "ranks": [int(np.searchsorted(-order, -x, "left")) + 1 for x in f],
-                "found_optimum": int(np.sum(f == best)),
-                "median_best_visited_regret": float(np.median(best - np.asarray(
-                    r["best_visited"]))),
-                "median_distinct_bodies": float(np.median(r["distinct_bodies"])),
-                "seconds_per_run": r["seconds"] / len(f),
-            }
-        for a in RL:
-            for b in BASELINES:
-                if a in fits and b in fits:
-                    out[k][f"{a}-{b}"] = effect(rows[a], rows[b], true, table_means, rng)
+        for rule in RULES:
+            prefix = "" if rule == "draw" else "confirmed_"
+            rows = {m: np.asarray(r[prefix + "rows" if prefix else "best_rows"])
+                    for m, r in by_method.items() if prefix + "rows" in r or not prefix}
+            by = out[k][rule] = {}
+            for m, rw in rows.items():
+                f, r = true[rw], by_method[m]
+                regret = best - f
+                by[m] = {
+                    "median_regret": bootstrap(regret, np.median, rng),
+                    "mean_regret": bootstrap(regret, np.mean, rng),
+                    "ranks": [int(np.searchsorted(-ranked, -x, "left")) + 1 for x in f],
+                    "found_optimum": int(np.sum(f == best)),
+                    "indistinguishable": int(tied[rw].sum()),  # returned a body tied with the best
+                    "median_best_visited_regret": float(np.median(best - np.asarray(
+                        r["best_visited"]))),
+                    "median_distinct_bodies": float(np.median(r["distinct_bodies"])),
+                    "seconds_per_run": r["seconds"] / len(f),
+                }
+            for a in RL:
+                for b in (*BASELINES, *(("ddqn",) if a == "dqn" else ())):
+                    if a in rows and b in rows:
+                        by[f"{a}-{b}"] = effect(rows[a], rows[b], true, table_means, rng)
     return out
 
 
 def table_lines(summary: dict) -> list[str]:
-    gap = summary["stats"]["table_top2_gap"]
+    st = summary["stats"]
+    gap = st["table_top2_gap"]
     lines = [f"the table's best body minus its second: {gap['diff']:.1f} "
              f"[{gap['ci'][0]:.1f}, {gap['ci'][1]:.1f}], P(first better) "
-             f"{gap['p_first_better']:.2f} (each body's results resampled)",
-             "K  method     median regret [95% CI]    mean regret [95% CI]      "
-             "median rank  optimum  s/run"]
+             f"{gap['p_first_better']:.2f} ({gap['results']} results; each body's resampled); "
+             f"{len(st['indistinguishable_from_best'])} bodies indistinguishable from the best",
+             "K  rule      method     median regret [95% CI]    mean regret [95% CI]      "
+             "median rank  optimum  tied  s/run"]
     for k in sorted(summary["results"], key=int):
-        by = summary["stats"][k]
-        for m in list_agents():
-            if m not in by:
-                continue
-            r = by[m]
-            med, mean = r["median_regret"], r["mean_regret"]
-            lines.append(
-                f"{k:<2} {m:<10} {med[0]:6.1f} [{med[1]:6.1f}, {med[2]:6.1f}]     "
-                f"{mean[0]:6.1f} [{mean[1]:6.1f}, {mean[2]:6.1f}]     "
-                f"{np.median(r['ranks']):5.1f}     {r['found_optimum']:2d}/{len(r['ranks'])}"
-                f"  {r['seconds_per_run']:6.2f}"
-            )
-        for pair, e in by.items():
-            if "-" in pair:
-                star = "*" if e["significant"] else " "
-                tstar = "*" if e["significant_with_table"] else " "
-                lines.append(f"{k:<2} {pair:<16} mean true fitness diff {e['diff']:6.1f} "
-                             f"[{e['ci'][0]:6.1f}, {e['ci'][1]:6.1f}]{star} with the table's "
-                             f"noise [{e['ci_with_table'][0]:6.1f}, {e['ci_with_table'][1]:6.1f}]"
-                             f"{tstar} P(beats) {e['p_beats']:.2f}")
+        for rule in RULES:
+            by = st[k][rule]
+            for m in list_agents():
+                if m not in by:
+                    continue
+                r = by[m]
+                med, mean = r["median_regret"], r["mean_regret"]
+                lines.append(
+                    f"{k:<2} {rule:<9} {m:<10} {med[0]:6.1f} [{med[1]:6.1f}, {med[2]:6.1f}]     "
+                    f"{mean[0]:6.1f} [{mean[1]:6.1f}, {mean[2]:6.1f}]     "
+                    f"{np.median(r['ranks']):5.1f}     {r['found_optimum']:2d}/{len(r['ranks'])}"
+                    f"  {r['indistinguishable']:2d}  {r['seconds_per_run']:6.2f}"
+                )
+            for pair, e in by.items():
+                if "-" in pair:
+                    star = "*" if e["significant"] else " "
+                    tstar = "*" if e["significant_with_table"] else " "
+                    lines.append(
+                        f"{k:<2} {rule:<9} {pair:<16} diff {e['diff']:6.1f} "
+                        f"[{e['ci'][0]:6.1f}, {e['ci'][1]:6.1f}]{star} with the table's noise "
+                        f"[{e['ci_with_table'][0]:6.1f}, {e['ci_with_table'][1]:6.1f}]{tstar} "
+                        f"P(beats) {e['p_beats']:.2f}")
     return lines
 
 
@@ -267,7 +330,7 @@ def main():
             if method in summary["results"].get(str(k), {}):
                 continue
             start = time.time()
-            res = run_method(method, k, s, true, sigs)
+            res = run_method(method, k, s, true, sigs, table)
             res["date"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
             summary["results"].setdefault(str(k), {})[method] = res
             print(f"K={k} {method}: median true fitness {np.median(res['true_fitness']):.1f}, "
@@ -284,12 +347,15 @@ def main():
         for method, r in summary["results"][k].items():
             curve = np.asarray(r["curve"])
             x = s.num_envs * np.minimum(s.chunk * np.arange(1, len(curve) + 1), s.steps)
-            band(ax, x, curve, method)
+            line = band(ax, x, curve, method)
+            confirmed = np.median(r["confirmed_true_fitness"])  # the confirmed rule's return
+            ax.plot(x[-1], confirmed, "x", ms=8, color=line.get_color())
         ax.axhline(true.max(), color="k", lw=0.8, ls=":")
         ax.set(title=f"K = {k}", xlabel="fitness evaluations per run")
     axes[0][0].set(ylabel="true fitness of the body returned")
     axes[0][0].legend(fontsize=8)
-    fig.suptitle(f"{s.space} table, {s.seeds} seeds: median, .25-.75 band")
+    fig.suptitle(f"{s.space} table, {s.seeds} seeds: median, .25-.75 band (x: the confirmed "
+                 "rule's median at the end)")
     save(fig, out, name, summary)
 
 
