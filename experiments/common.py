@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import pickle
 import time
+from pathlib import Path
 
 import jax
 import matplotlib
@@ -50,10 +52,9 @@ def setup_from(args) -> Setup:
     return Setup(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Setup)})
 
 
-def run_agent(agent: str, setup: Setup, seeds: int) -> dict:
-    """`seeds` independent runs of `agent`, built as the run command builds them; returns
-    per-step arrays of shape (steps, seeds, ...)."""
-    cfg = RunConfig(
+def run_config(agent: str, setup: Setup) -> RunConfig:
+    """The run command's settings for `agent` under `setup`."""
+    return RunConfig(
         space=setup.space,
         fitness=setup.fitness,
         agent=agent,
@@ -65,31 +66,62 @@ def run_agent(agent: str, setup: Setup, seeds: int) -> dict:
         learning_starts=4 * setup.num_envs,
         physics=setup.physics,
     )
-    p = build(cfg)
+
+
+def run_agent(agent: str, setup: Setup, seeds: int, resume: Path | None = None,
+              deadline: float | None = None) -> dict | None:
+    """`seeds` independent runs of `agent`, built as the run command builds them; returns
+    per-step arrays of shape (steps, seeds, ...).
+
+    With `resume`, the agents' states and metrics so far are saved there (a pickle) after every
+    chunk and picked up from there by the next call; past `deadline` (time.time()) it returns
+    None after the chunk in progress, to be called again. "seconds" counts every call's wall
+    clock, building and compiling included."""
+    called = time.time()
+    p = build(run_config(agent, setup))
     chunk = p.agent.chunk
-    keys = jax.random.split(jax.random.PRNGKey(0), seeds)
-    start = time.perf_counter()
-    states = jax.block_until_ready(jax.jit(jax.vmap(p.agent.init))(keys))
-    init_s = time.perf_counter() - start
+    so_far = pickle.loads(resume.read_bytes()) if resume and resume.exists() else None
+    if so_far is None:
+        keys = jax.random.split(jax.random.PRNGKey(0), seeds)
+        start = time.perf_counter()
+        states = jax.block_until_ready(jax.jit(jax.vmap(p.agent.init))(keys))
+        so_far = {"metrics": [], "walls": [], "done": 0, "seconds": 0.0,
+                  "init_seconds": time.perf_counter() - start}
+    else:
+        states = so_far.pop("states")
+
+    def keep():
+        if resume is not None:
+            kept = {**so_far, "states": jax.device_get(states),
+                    "seconds": so_far["seconds"] + time.time() - called}
+            resume.parent.mkdir(parents=True, exist_ok=True)
+            resume.with_suffix(".tmp").write_bytes(pickle.dumps(kept))
+            resume.with_suffix(".tmp").replace(resume)
+
+    keep()
     step_fns = {}
-    metrics, walls, done = [], [], 0
-    while done < setup.steps:
-        n = min(setup.chunk, setup.steps - done)
+    while so_far["done"] < setup.steps:
+        if deadline is not None and time.time() > deadline:
+            return None
+        n = min(setup.chunk, setup.steps - so_far["done"])
         if n not in step_fns:  # compile outside the clock, then time the compiled call alone
             step_fns[n] = jax.jit(jax.vmap(lambda s, n=n: chunk(s, n))).lower(states).compile()
         start = time.perf_counter()
         states, m = jax.block_until_ready(step_fns[n](states))
-        walls += [(time.perf_counter() - start) / n] * n
-        metrics.append({k: v for k, v in jax.device_get(m).items() if k != "bodies"})
-        done += n
+        so_far["walls"] += [(time.perf_counter() - start) / n] * n
+        so_far["metrics"].append({k: v for k, v in jax.device_get(m).items() if k != "bodies"})
+        so_far["done"] += n
+        keep()
+    metrics = so_far["metrics"]
     # metrics come as (seeds, n, ...): put steps first
     cat = {k: np.concatenate([np.swapaxes(m[k], 0, 1) for m in metrics]) for k in metrics[0]}
     best = jax.device_get(states.best_morph)
     return {
         "agent": agent,
         "metrics": cat,  # (steps, seeds, ...)
-        "step_seconds": np.asarray(walls),  # (steps,) wall-clock of a step, all seeds together
-        "init_seconds": init_s,  # compile and evaluate m0 (compile included: the first call)
+        "step_seconds": np.asarray(so_far["walls"]),  # (steps,) a step, all seeds together
+        "init_seconds": so_far["init_seconds"],  # compile and evaluate m0 (the first call)
+        "seconds": so_far["seconds"] + time.time() - called,  # all calls, compiles included
         "evals_per_step": setup.num_envs,  # per seed
         "best_bodies": [jax.tree.map(lambda x, i=i: x[i], best) for i in range(seeds)],
         "best_fitness": np.asarray(jax.device_get(states.best_fitness)),

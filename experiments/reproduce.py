@@ -1,0 +1,276 @@
+"""The source's experiments at its scale (Figures 5 to 8, RL against evolution on Constructor).
+
+Each stage trains agents with the NGE fitness (PPO with the parent's controller inherited, on
+--physics) and keeps its data under --data; a stage resumes where it stopped (the agents'
+states are saved after every chunk), so the whole section spans device calls of a few minutes:
+run the same command again until it says every stage asked for is done. `--draw` makes the
+figures from the data files alone.
+
+  fig6_h20, fig6_h100  Double-DQN on Bad Walker, Q-network width 20 and 100 (Figure 6)
+  fig5                 the width-100 agents' greedy unrolls from m0, each body confirmed (Fig. 5)
+  fig8                 the actor-critic on Constructor: return and policy entropy (Figure 8)
+  fig7                 its greedy unrolls, each body confirmed (Figure 7)
+  compare              actor-critic, Double-DQN, evolution and random walks on Constructor at
+                       equal evaluations; each returned body confirmed
+
+A body is "confirmed" by --confirm-controllers controllers trained from scratch (no
+inheritance) with fresh keys in one batched call: the mean and its 95% t-interval.
+
+  python -m experiments.reproduce --stages fig6_h20 fig6_h100 fig5 --physics warp --budget 480
+  python -m experiments.reproduce --draw --data docs/figures/reproduce --out docs/figures
+  python -m experiments.reproduce --toy --stages all --data /tmp/r --out /tmp/r   # CPU smoke
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import math
+import pickle
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+import evojax_morph as em
+from evojax_morph.pipeline import build, make_greedy_rollout
+from experiments.build_tables import revision
+from experiments.common import Setup, band, episode_returns, plt, run_agent, run_config, save
+
+TRAIN_STEPS = 5_000  # the source's PPO budget per evaluation (it names 3,000 and 5,000)
+
+
+@dataclasses.dataclass(frozen=True)
+class Group:
+    """One run group: `seeds` runs of `agent`, each `num_envs` x `steps` evaluations."""
+
+    space: str
+    agent: str
+    num_envs: int
+    steps: int
+    hidden: int = 64
+    seeds: int = 3
+    chunk: int = 8
+
+
+GROUPS = {  # at least the evaluations per run and seeds the issue asks for
+    "fig6_h20": Group("bad_walker", "ddqn", 64, 160, hidden=20),  # 10,240 evaluations a run
+    "fig6_h100": Group("bad_walker", "ddqn", 64, 160, hidden=100),
+    "fig8": Group("constructor", "a2c", 256, 160),  # 40,960
+    **{f"compare_{a}": Group("constructor", a, 128, 160)  # 20,480
+       for a in ("a2c", "ddqn", "evolution", "random")},
+}
+UNROLLS = {"fig5": "fig6_h100", "fig7": "fig8"}  # a figure of greedy unrolls: its agents' group
+STAGES = {"fig6_h20": ["fig6_h20"], "fig6_h100": ["fig6_h100"], "fig5": ["fig5"],
+          "fig8": ["fig8"], "fig7": ["fig7"],
+          "compare": [g for g in GROUPS if g.startswith("compare_")]}
+
+
+def toy(g: Group) -> Group:
+    """The CPU smoke's size: 2 seeds of 2 evolutions x 4 steps."""
+    return dataclasses.replace(g, num_envs=2, steps=4, chunk=2, seeds=2,
+                               hidden=min(g.hidden, 20))
+
+
+def setup_of(g: Group, args) -> Setup:
+    return Setup(space=g.space, fitness="ppo", train_steps=args.train_steps, num_envs=g.num_envs,
+                 steps=g.steps, chunk=g.chunk, hidden=g.hidden, physics=args.physics)
+
+
+def record(g: Group, args, seconds: float, **data) -> dict:
+    """A run group's data file: what the figure is drawn from, with its settings and cost."""
+    device = jax.devices()[0]
+    return {
+        "space": g.space, "agent": g.agent, "hidden": g.hidden, "seeds": g.seeds,
+        "fitness": {"kind": "ppo", "train_steps": args.train_steps, "controllers": 1,
+                    "inheritance": True},
+        "physics": args.physics, "device": f"{device.platform}: {device.device_kind}",
+        "evaluations_per_run": g.num_envs * g.steps, "num_envs": g.num_envs, "steps": g.steps,
+        "device_seconds": round(seconds, 1),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "revision": revision(), **data,
+    }
+
+
+def confirm(space, morphs: list, key, args) -> list[dict]:
+    """Each body trained afresh with C controllers (no inheritance) in one call: mean and 95%
+    t-interval of the mean over the C results."""
+    c = args.confirm_controllers
+    cfg = em.FitnessConfig(kind="ppo", physics=args.physics,
+                           ppo=em.standard_ppo(args.train_steps, 1))
+    bodies = em.stack([m for m in morphs for _ in range(c)])
+    res = em.evaluate(space, bodies, jax.random.split(key, len(morphs) * c), cfg)
+    values = np.asarray(res.fitness, np.float64).reshape(len(morphs), c)
+    half = T975.get(c - 1, 1.96) * values.std(1, ddof=1) / math.sqrt(c)
+    return [{"body": space.canonical(m), "mean": float(v.mean()),
+             "ci95": [float(v.mean() - h), float(v.mean() + h)], "controllers": c}
+            for m, v, h in zip(morphs, values, half)]
+
+
+T975 = {1: 12.71, 3: 3.18, 7: 2.36, 15: 2.13, 31: 2.04, 63: 2.00}  # Student t, 97.5%, by dof
+
+
+def run_group(name: str, g: Group, args, deadline: float) -> bool:
+    """Runs (or resumes) group `name`; writes DATA/name.json when complete."""
+    path = args.data / f"{name}.json"
+    if path.exists():
+        return True
+    res = run_agent(g.agent, setup_of(g, args), g.seeds, resume=args.data / f"{name}.state",
+                    deadline=deadline)
+    if res is None:
+        return False
+    m, horizon, space = res["metrics"], res["horizon"], res["space"]
+    data = {
+        "returns": episode_returns(m["reward"], horizon).tolist(),  # (episodes, seeds)
+        "best_fitness": m["best_fitness"].tolist(),  # (steps, seeds) best single draw so far
+        "step_seconds": float(np.median(res["step_seconds"])),
+        "horizon": horizon,
+    }
+    if "entropy" in m:
+        data["entropy"] = m["entropy"].reshape(len(m["entropy"]), g.seeds, -1).mean(-1).tolist()
+    if name.startswith("compare_"):  # each run's returned body (its best single draw), confirmed
+        data["returned"] = confirm(space, res["best_bodies"], jax.random.PRNGKey(11), args)
+        data["returned_draw"] = res["best_fitness"].tolist()
+    if name in UNROLLS.values():  # the trained agents, for the unroll figure
+        keep = {"learner": res["states"].learner, "first": res["states"].first}
+        (args.data / f"{name}.agents").write_bytes(pickle.dumps(
+            jax.device_get(keep)))
+    path.write_text(json.dumps(record(g, args, res["seconds"], **data), indent=1))
+    print(f"{name}: done in {res['seconds']:.0f} s", flush=True)
+    return True
+
+
+def unroll(name: str, of: str, args) -> bool:
+    """Greedy unrolls from m0 of every seed's trained agent in group `of`, each body
+    confirmed; writes DATA/name.json."""
+    path, agents = args.data / f"{name}.json", args.data / f"{of}.agents"
+    if path.exists():
+        return True
+    if not agents.exists():
+        print(f"{name} waits for {of}", flush=True)
+        return False
+    start = time.time()
+    g = groups(args)[of]
+    p = build(run_config(g.agent, setup_of(g, args)))
+    trained = pickle.loads(agents.read_bytes())
+    rollout = make_greedy_rollout(p)
+    unrolls = []
+    for seed in range(g.seeds):
+        learner, first = jax.tree.map(lambda x, s=seed: x[s], (trained["learner"],
+                                                               trained["first"]))
+        unrolls.append(rollout(learner, first, jax.random.PRNGKey(100 + seed)))
+    bodies = {p.space.canonical(m): m for u in unrolls for m in u.morphs}
+    confirmed = dict(zip(bodies, confirm(p.space, list(bodies.values()),
+                                         jax.random.PRNGKey(12), args)))
+    data = {"unrolls": [{"actions": u.actions,
+                         "bodies": [confirmed[p.space.canonical(m)] for m in u.morphs],
+                         "inherited_fitness": u.fitness} for u in unrolls],
+            "confirm_controllers": args.confirm_controllers}
+    path.write_text(json.dumps(record(g, args, time.time() - start, of=of, **data), indent=1))
+    print(f"{name}: done in {time.time() - start:.0f} s", flush=True)
+    return True
+
+
+def groups(args) -> dict[str, Group]:
+    return {k: toy(g) if args.toy else g for k, g in GROUPS.items()}
+
+
+def draw(data: Path, out: Path) -> None:
+    """The figures from the data files present."""
+    load = lambda n: json.loads((data / f"{n}.json").read_text())  # noqa: E731
+    have = {p.stem for p in data.glob("*.json")}
+    if {"fig6_h20", "fig6_h100"} & have:
+        fig, (ax_r, ax_b) = plt.subplots(1, 2, figsize=(10, 3.6))
+        runs = {n: load(n) for n in ("fig6_h20", "fig6_h100") if n in have}
+        for n, r in runs.items():
+            ret, best = np.asarray(r["returns"]), np.asarray(r["best_fitness"])
+            band(ax_r, np.arange(1, len(ret) + 1), ret, f"hidden {r['hidden']}")
+            band(ax_b, r["num_envs"] * np.arange(1, len(best) + 1), best, f"hidden {r['hidden']}")
+        ax_r.set(title="Double-DQN, Bad Walker, NGE fitness", xlabel="episode",
+                 ylabel="episode return (f_k - f_0)")
+        ax_b.set(title="best single draw so far", xlabel="fitness evaluations per run")
+        ax_r.legend()
+        save(fig, out, "fig6_ddqn_hidden", runs)
+    for name, title in (("fig5", "Double-DQN (width 100), Bad Walker"),
+                        ("fig7", "actor-critic, Constructor")):
+        if name in have:
+            r = load(name)
+            fig, ax = plt.subplots(figsize=(6, 3.6))
+            for i, u in enumerate(r["unrolls"]):
+                mean = [b["mean"] for b in u["bodies"]]
+                lo = [b["mean"] - b["ci95"][0] for b in u["bodies"]]
+                ax.errorbar(np.arange(len(mean)) + 0.05 * i, mean, yerr=lo, marker="o",
+                            capsize=3, label=f"seed {i}")
+            ax.set(title=f"{title}: greedy unroll, confirmed fitness", xlabel="mutation",
+                   ylabel=f"mean of {r['confirm_controllers']} fresh controllers, 95% CI")
+            ax.legend(fontsize=8)
+            save(fig, out, name + "_unroll", r)
+    if "fig8" in have:
+        r = load("fig8")
+        fig, (ax_r, ax_e) = plt.subplots(1, 2, figsize=(10, 3.6))
+        ret, ent = np.asarray(r["returns"]), np.asarray(r["entropy"])
+        band(ax_r, np.arange(1, len(ret) + 1), ret, "actor-critic")
+        band(ax_e, r["num_envs"] * np.arange(1, len(ent) + 1), ent, "actor-critic")
+        ax_r.set(title="actor-critic, Constructor, NGE fitness", xlabel="episode",
+                 ylabel="episode return (f_k - f_0)")
+        ax_e.set(title="policy entropy", xlabel="fitness evaluations per run")
+        save(fig, out, "fig8_a2c_constructor", r)
+    runs = {n[len("compare_"):]: load(n) for n in sorted(have) if n.startswith("compare_")}
+    if runs:
+        fig, ax = plt.subplots(figsize=(6, 3.6))
+        for i, (agent, r) in enumerate(runs.items()):
+            means = [b["mean"] for b in r["returned"]]
+            ax.scatter([i] * len(means), means, label=agent)
+        ax.set_xticks(range(len(runs)), list(runs))
+        ax.set(title="Constructor: confirmed fitness of each run's returned body",
+               ylabel="mean of fresh controllers")
+        save(fig, out, "compare_constructor", runs)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    add = parser.add_argument
+    add("--stages", nargs="+", default=[], help=f"all, or of {', '.join(STAGES)}")
+    add("--physics", default="jax", help="the fitness's engine: jax | warp")
+    add("--train-steps", type=int, default=TRAIN_STEPS, help="PPO steps per evaluation")
+    add("--confirm-controllers", type=int, default=32, help="controllers confirming a body")
+    add("--budget", type=float, default=480,
+        help="seconds: start no chunk after this (a device call's limit, less a margin)")
+    add("--data", type=Path, default=Path("docs/figures/reproduce"), help="the data files")
+    add("--out", type=Path, default=Path("docs/figures"), help="the figures")
+    add("--toy", action="store_true", help="the CPU smoke's size (and 320 PPO steps)")
+    add("--draw", action="store_true", help="draw the figures from the data files")
+    args = parser.parse_args(argv)
+    stages = list(STAGES) if "all" in args.stages else args.stages
+    if unknown := [s for s in stages if s not in STAGES]:
+        parser.error(f"unknown stages {unknown}; choose from all, {', '.join(STAGES)}")
+    if args.toy:
+        args.train_steps, args.confirm_controllers = 320, 2
+    jax.config.update("jax_default_matmul_precision", "highest")
+    deadline = time.time() + args.budget
+    args.data.mkdir(parents=True, exist_ok=True)
+    done = True
+    for stage in stages:
+        for name in STAGES[stage]:
+            if name in UNROLLS:
+                done &= unroll(name, UNROLLS[name], args)
+            else:
+                done &= run_group(name, groups(args)[name], args, deadline)
+            if time.time() > deadline:
+                break
+    print("every stage asked for is done" if done else "not done: run the same command again",
+          flush=True)
+    if args.draw:
+        draw(args.data, args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
