@@ -14,6 +14,11 @@ parts (networks, GAE, running observation statistics); the log-probability and e
 own, masked to the motors a body has, since brax's sum over every action dimension of the
 padded template. Parameter shapes are the same for every body of a space, so a child can start
 from its parent's controller (policy inheritance).
+
+The pieces, one factory each, as purejaxrl's scans nest: `make_train` (K controllers per body)
+> `make_train_learners` (the update scan) > `make_collect` (COLLECT TRAJECTORIES, the env-step
+scan) and `make_learn` (GAE, then epochs > minibatches of `make_loss`); then
+`make_evaluate_learners` scores the trained controllers.
 """
 
 from __future__ import annotations
@@ -30,8 +35,8 @@ from brax.training.agents.ppo import losses as ppo_losses
 from brax.training.agents.ppo import networks as ppo_networks
 from flax import struct
 
-from evojax_morph.engines import get_engine, repeat_worlds
-from evojax_morph.locomotion import Locomotion, TaskConfig
+from evojax_morph.engines import Engine, get_engine, repeat_worlds
+from evojax_morph.locomotion import EnvState, Locomotion, TaskConfig
 from evojax_morph.morphology import Morphology, tree_select
 from evojax_morph.spaces import Space
 
@@ -68,7 +73,10 @@ class PPOConfig:
         if self.train_steps < 0 or self.num_envs < 1 or self.unroll_length < 1:
             raise ValueError("train_steps must be >= 0, num_envs and unroll_length >= 1")
         if batch % self.num_minibatches:
-            raise ValueError(f"num_envs x unroll_length ({batch}) must divide into {self.num_minibatches} minibatches")
+            raise ValueError(
+                f"num_envs x unroll_length ({batch}) must divide into "
+                f"{self.num_minibatches} minibatches"
+            )
         if self.eval_episodes < 1 or self.controllers < 1:
             raise ValueError("eval_episodes and controllers must be at least 1")
 
@@ -89,6 +97,15 @@ class Transition(NamedTuple):
     terminated: jax.Array  # (T, E) float
     truncated: jax.Array  # (T, E) float
     diverged: jax.Array  # (T, E) bool
+
+
+class Rollout(NamedTuple):
+    """What carries over from one trajectory to the next, per world of L learners x E envs."""
+
+    state: EnvState  # (L x E,) the worlds, flat
+    episode_return: jax.Array  # (L, E) return of each world's episode so far
+    last_return: jax.Array  # (L, E) return of each world's last finished episode
+    keys: jax.Array  # (L,) the learners' keys
 
 
 @struct.dataclass
@@ -121,7 +138,9 @@ def masked_log_prob(dist: distribution.NormalTanhDistribution, logits, raw_actio
 def masked_entropy(dist: distribution.NormalTanhDistribution, logits, key, mask):
     """Entropy of the tanh-normal over active dimensions, estimated with one sample as brax does."""
     normal = dist.create_dist(logits)
-    per_dim = normal.entropy() + distribution.TanhBijector().forward_log_det_jacobian(normal.sample(key))
+    per_dim = normal.entropy() + distribution.TanhBijector().forward_log_det_jacobian(
+        normal.sample(key)
+    )
     return jnp.sum(jnp.where(mask, per_dim, 0.0), axis=-1)
 
 
@@ -192,45 +211,9 @@ def make_train(
       deterministic episodes each, B x K x eval_episodes worlds).
     """
     cfg.validate()
-    engine = get_engine(physics)
     env = Locomotion(space, task_cfg)
     networks = _networks(env, cfg)
-    dist = networks.parametric_action_distribution
-    policy_apply = networks.policy_network.apply
-    value_apply = networks.value_network.apply
-    optimizer = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate))
-    num_envs, horizon, episodes = cfg.num_envs, cfg.unroll_length, cfg.eval_episodes
-    policy = make_policy(space, task_cfg, cfg)
-    minibatch = num_envs * horizon // cfg.num_minibatches
-    split2 = jax.vmap(jax.random.split)  # (L,) keys -> (L, 2) keys
-
-    def init(key: jax.Array) -> Params:
-        """Fresh parameters: one controller, or K stacked along a leading axis."""
-        if cfg.controllers == 1:
-            return init_one(key)
-        return jax.vmap(init_one)(jax.random.split(key, cfg.controllers))
-
-    def init_one(key: jax.Array) -> Params:
-        key_policy, key_value = jax.random.split(key)
-        obs_spec = jax.ShapeDtypeStruct((env.obs_size,), jnp.zeros(()).dtype)
-        return Params(
-            normalizer=running_statistics.init_state(obs_spec),
-            policy=networks.policy_network.init(key_policy),
-            value=networks.value_network.init(key_value),
-        )
-
-    def loss_fn(net, normalizer, batch, advantages, targets, mask, key):
-        logits = policy_apply(normalizer, net["policy"], batch.obs)
-        log_prob = masked_log_prob(dist, logits, batch.raw_action, mask)
-        ratio = jnp.exp(log_prob - batch.log_prob)
-        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
-        clipped = jnp.clip(ratio, 1 - cfg.clip_eps, 1 + cfg.clip_eps)
-        policy_loss = -jnp.mean(jnp.minimum(ratio * advantages, clipped * advantages))
-        value = value_apply(normalizer, net["value"], batch.obs)
-        value_loss = jnp.mean((targets - value) ** 2)
-        entropy = jnp.mean(masked_entropy(dist, logits, key, mask))
-        loss = policy_loss + cfg.vf_coef * value_loss - cfg.entropy_cost * entropy
-        return loss, entropy
+    train_learners = make_train_learners(space, env, get_engine(physics), networks, cfg)
 
     def train(keys: jax.Array, morphs: Morphology, params: Params) -> TrainResult:
         # Full float32 matmuls wherever train is traced (em.evaluate, the agents' loops): TF32 on
@@ -254,59 +237,65 @@ def make_train(
                 entropy=out.entropy.mean(1),
             )
 
-    def train_learners(keys: jax.Array, models, params: Params) -> TrainResult:
-        """L = B x K learners (controllers), each on its body's model with num_envs worlds."""
-        learners, bodies = keys.shape[0], models.body_mass.shape[0]
-        per_body = learners // bodies
-        worlds = engine.prepare(space, models, per_body * num_envs)
-        body = jax.vmap(env.body)(models)
-        world_bodies = repeat_worlds(body, per_body * num_envs)  # (L x E,)
-        mask = repeat_worlds(body.motors, per_body)  # (L, A)
-        num_active = jnp.maximum(mask.sum(-1), 1)
-        by_learner = lambda x: x.reshape((learners, num_envs) + x.shape[1:])
-        flat = lambda x: x.reshape((learners * num_envs,) + x.shape[2:])
+    return make_init(env, networks, cfg), train
 
-        keys, key_reset = jnp.moveaxis(split2(keys), 1, 0)
-        reset_keys = jax.vmap(lambda key: jax.random.split(key, num_envs))(key_reset)
-        first = env.reset_worlds(engine, worlds, world_bodies, flat(reset_keys))
+
+def make_init(env: Locomotion, networks, cfg: PPOConfig):
+    """`init(key) -> Params`: fresh parameters, one controller or K stacked along a leading axis."""
+
+    def init_one(key: jax.Array) -> Params:
+        key_policy, key_value = jax.random.split(key)
+        obs_spec = jax.ShapeDtypeStruct((env.obs_size,), jnp.zeros(()).dtype)
+        return Params(
+            normalizer=running_statistics.init_state(obs_spec),
+            policy=networks.policy_network.init(key_policy),
+            value=networks.value_network.init(key_value),
+        )
+
+    def init(key: jax.Array) -> Params:
+        if cfg.controllers == 1:
+            return init_one(key)
+        return jax.vmap(init_one)(jax.random.split(key, cfg.controllers))
+
+    return init
+
+
+_split2 = jax.vmap(jax.random.split)  # (L,) keys -> (L, 2) keys
+
+
+def make_train_learners(space: Space, env: Locomotion, engine: Engine, networks, cfg: PPOConfig):
+    """`train_learners(keys (L,), models (B,), params (L, ...)) -> TrainResult of (L,) arrays`:
+    L = B x K learners (controllers), learner l on body l // K with num_envs worlds, all L x
+    num_envs worlds stepped as one flat batch; PPO updates, then `eval_episodes` deterministic
+    episodes per learner."""
+    optimizer = optax.chain(
+        optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate)
+    )
+    collect = make_collect(env, engine, networks, cfg)
+    learn = jax.vmap(make_learn(networks, optimizer, cfg))
+    evaluate = make_evaluate_learners(space, env, engine, cfg)
+    num_envs = cfg.num_envs
+    by_learner = lambda x: x.reshape((-1, num_envs) + x.shape[1:])
+
+    def train_learners(keys: jax.Array, models, params: Params) -> TrainResult:
+        learners = keys.shape[0]
+        keys, key_reset = jnp.moveaxis(_split2(keys), 1, 0)
+        worlds, world_bodies, first = reset_learners(
+            space, env, engine, key_reset, models, num_envs
+        )  # (L x E,)
+        mask = world_bodies.motors[::num_envs]  # (L, A)
+        num_active = jnp.maximum(mask.sum(-1), 1)
         net = {"policy": params.policy, "value": params.value}
         opt_state = jax.vmap(optimizer.init)(net)
 
         def update(carry, _):
-            normalizer, net, opt_state, state, episode_return, last_return, keys = carry
-
-            # COLLECT TRAJECTORIES: every learner acts, then every world steps in one batch
-            def env_step(carry, _):
-                state, episode_return, last_return, keys = carry
-                keys, key_act = jnp.moveaxis(split2(keys), 1, 0)
-                obs = by_learner(state.obs)
-                logits = jax.vmap(policy_apply)(normalizer, net["policy"], obs)
-                raw = jax.vmap(dist.sample_no_postprocessing)(logits, key_act)
-                nxt = env.step_worlds(engine, worlds, world_bodies, state, flat(dist.postprocess(raw)))
-                reward, done = by_learner(nxt.reward), by_learner(nxt.done)
-                episode_return = episode_return + reward
-                transition = Transition(
-                    obs=obs,
-                    raw_action=raw,
-                    log_prob=masked_log_prob(dist, logits, raw, mask[:, None]),
-                    reward=reward,
-                    terminated=by_learner(nxt.terminated).astype(reward.dtype),
-                    truncated=by_learner(nxt.truncated).astype(reward.dtype),
-                    diverged=by_learner(nxt.diverged),
-                )
-                last_return = jnp.where(done, episode_return, last_return)
-                # AUTO-RESET to each world's own first state
-                nxt = tree_select(nxt.done, first.replace(data=None), nxt.replace(data=None)).replace(
-                    data=engine.where(nxt.done, first.data, nxt.data)
-                )
-                episode_return = jnp.where(by_learner(nxt.steps) == 0, 0.0, episode_return)
-                return (nxt, episode_return, last_return, keys), transition
-
-            (state, episode_return, last_return, keys), traj = jax.lax.scan(
-                env_step, (state, episode_return, last_return, keys), length=horizon
+            normalizer, net, opt_state, rollout = carry
+            rollout, traj = collect(
+                worlds, world_bodies, first, mask, normalizer, net["policy"], rollout
             )
             traj = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), traj)  # (L, T, E, ...)
-            normalizer, net, opt_state, keys, entropy = jax.vmap(learn)(
+            state, _, last_return, keys = rollout
+            normalizer, net, opt_state, keys, entropy = learn(
                 normalizer, net, opt_state, traj, by_learner(state.obs), mask, keys
             )
             metrics = {
@@ -314,60 +303,16 @@ def make_train(
                 "entropy": entropy / num_active,
                 "diverged": traj.diverged.any((1, 2)),
             }
-            return (normalizer, net, opt_state, state, episode_return, last_return, keys), metrics
-
-        def learn(normalizer, net, opt_state, traj, last_obs, mask, key):
-            """One learner's PPO update from its (T, E) trajectory."""
-            # ADVANTAGES (brax's GAE: a step that hit the time limit is masked out, not bootstrapped)
-            if cfg.normalize_observations:
-                normalizer = running_statistics.update(normalizer, traj.obs)
-            values = value_apply(normalizer, net["value"], traj.obs)
-            bootstrap = value_apply(normalizer, net["value"], last_obs)
-            targets, advantages = ppo_losses.compute_gae(
-                truncation=traj.truncated,
-                termination=traj.terminated,
-                rewards=traj.reward * cfg.reward_scaling,
-                values=values,
-                bootstrap_value=bootstrap,
-                lambda_=cfg.gae_lambda,
-                discount=cfg.discount,
-            )
-
-            # UPDATE NETWORK: epochs x minibatches over the flattened (T x E) samples
-            flat_samples = lambda x: x.reshape((num_envs * horizon,) + x.shape[2:])
-            samples = jax.tree.map(flat_samples, (traj, advantages, targets))
-
-            def epoch(carry, key):
-                net, opt_state = carry
-                key_perm, key_loss = jax.random.split(key)
-                perm = jax.random.permutation(key_perm, num_envs * horizon)
-                shuffled = jax.tree.map(lambda x: x[perm].reshape((cfg.num_minibatches, minibatch) + x.shape[1:]), samples)
-
-                def sgd(carry, batch):
-                    net, opt_state = carry
-                    (transition, adv, tgt), key = batch
-                    grads, entropy = jax.grad(loss_fn, has_aux=True)(net, normalizer, transition, adv, tgt, mask, key)
-                    updates, opt_state = optimizer.update(grads, opt_state)
-                    return (optax.apply_updates(net, updates), opt_state), entropy
-
-                keys = jax.random.split(key_loss, cfg.num_minibatches)
-                (net, opt_state), entropy = jax.lax.scan(sgd, (net, opt_state), (shuffled, keys))
-                return (net, opt_state), entropy.mean()
-
-            key, key_epochs = jax.random.split(key)
-            (net, opt_state), entropy = jax.lax.scan(
-                epoch, (net, opt_state), jax.random.split(key_epochs, cfg.update_epochs)
-            )
-            return normalizer, net, opt_state, key, entropy.mean()
+            return (normalizer, net, opt_state, rollout._replace(keys=keys)), metrics
 
         zeros = jnp.zeros((learners, num_envs), first.reward.dtype)
-        carry = (params.normalizer, net, opt_state, first, zeros, zeros, keys)
+        carry = (params.normalizer, net, opt_state, Rollout(first, zeros, zeros, keys))
         steps = cfg.num_updates if cfg.train_steps else 0
-        (normalizer, net, _, _, _, _, keys), metrics = jax.lax.scan(update, carry, length=steps)
+        (normalizer, net, _, rollout), metrics = jax.lax.scan(update, carry, length=steps)
         params = Params(normalizer=normalizer, policy=net["policy"], value=net["value"])
 
         # EVALUATE: deterministic policy, eval_episodes episodes from fresh resets
-        returns, eval_diverged = evaluate(keys, models, params)
+        returns, eval_diverged = evaluate(rollout.keys, models, params)
         diverged = eval_diverged.any(-1) | (metrics["diverged"].any(0) if steps else False)
         last = lambda name: metrics[name][-1] if steps else jnp.zeros(learners)
         return TrainResult(
@@ -379,22 +324,163 @@ def make_train(
             entropy=last("entropy"),
         )
 
+    return train_learners
+
+
+def make_collect(env: Locomotion, engine: Engine, networks, cfg: PPOConfig):
+    """`collect(worlds, bodies, first, mask, normalizer, policy, rollout) -> (rollout, traj)`:
+    `unroll_length` control steps of L learners' stochastic policies (normalizer and policy
+    with a leading (L,) axis, mask (L, A)), every world of the flat batch (`bodies` and each
+    world's reset state `first`, (L x E,)) stepped at once; a world that is done restarts from
+    its `first`. traj: a `Transition` of (T, L, E, ...) arrays."""
+    dist = networks.parametric_action_distribution
+    policy_apply = jax.vmap(networks.policy_network.apply)
+    by_learner = lambda x: x.reshape((-1, cfg.num_envs) + x.shape[1:])
+    flat = lambda x: x.reshape((-1,) + x.shape[2:])
+
+    def collect(worlds, bodies, first: EnvState, mask, normalizer, policy, rollout: Rollout):
+        def env_step(rollout: Rollout, _):
+            state, episode_return, last_return, keys = rollout
+            keys, key_act = jnp.moveaxis(_split2(keys), 1, 0)
+            obs = by_learner(state.obs)
+            logits = policy_apply(normalizer, policy, obs)
+            raw = jax.vmap(dist.sample_no_postprocessing)(logits, key_act)
+            nxt = env.step_worlds(engine, worlds, bodies, state, flat(dist.postprocess(raw)))
+            reward, done = by_learner(nxt.reward), by_learner(nxt.done)
+            episode_return = episode_return + reward
+            transition = Transition(
+                obs=obs,
+                raw_action=raw,
+                log_prob=masked_log_prob(dist, logits, raw, mask[:, None]),
+                reward=reward,
+                terminated=by_learner(nxt.terminated).astype(reward.dtype),
+                truncated=by_learner(nxt.truncated).astype(reward.dtype),
+                diverged=by_learner(nxt.diverged),
+            )
+            last_return = jnp.where(done, episode_return, last_return)
+            # AUTO-RESET to each world's own first state
+            nxt = tree_select(nxt.done, first.replace(data=None), nxt.replace(data=None)).replace(
+                data=engine.where(nxt.done, first.data, nxt.data)
+            )
+            episode_return = jnp.where(by_learner(nxt.steps) == 0, 0.0, episode_return)
+            return Rollout(nxt, episode_return, last_return, keys), transition
+
+        return jax.lax.scan(env_step, rollout, length=cfg.unroll_length)
+
+    return collect
+
+
+def make_loss(networks, cfg: PPOConfig):
+    """`loss_fn(net, normalizer, batch, advantages, targets, mask, key) -> (loss, entropy)`: the
+    clipped PPO loss of one learner's minibatch (`Transition` of (M, ...) arrays, advantages and
+    value targets (M,)), log-probabilities and entropy over the motors in `mask` (A,) only."""
+    dist = networks.parametric_action_distribution
+    policy_apply, value_apply = networks.policy_network.apply, networks.value_network.apply
+
+    def loss_fn(net, normalizer, batch: Transition, advantages, targets, mask, key):
+        logits = policy_apply(normalizer, net["policy"], batch.obs)
+        log_prob = masked_log_prob(dist, logits, batch.raw_action, mask)
+        ratio = jnp.exp(log_prob - batch.log_prob)
+        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+        clipped = jnp.clip(ratio, 1 - cfg.clip_eps, 1 + cfg.clip_eps)
+        policy_loss = -jnp.mean(jnp.minimum(ratio * advantages, clipped * advantages))
+        value = value_apply(normalizer, net["value"], batch.obs)
+        value_loss = jnp.mean((targets - value) ** 2)
+        entropy = jnp.mean(masked_entropy(dist, logits, key, mask))
+        loss = policy_loss + cfg.vf_coef * value_loss - cfg.entropy_cost * entropy
+        return loss, entropy
+
+    return loss_fn
+
+
+def make_learn(networks, optimizer: optax.GradientTransformation, cfg: PPOConfig):
+    """`learn(normalizer, net, opt_state, traj, last_obs, mask, key) -> (normalizer, net,
+    opt_state, key, entropy)`: one learner's PPO update from its (T, E) trajectory and the
+    (E, obs_size) observations after it: `update_epochs` epochs of `num_minibatches`."""
+    grad_fn = jax.grad(make_loss(networks, cfg), has_aux=True)
+    value_apply = networks.value_network.apply
+    samples = cfg.num_envs * cfg.unroll_length
+    minibatch = samples // cfg.num_minibatches
+
+    def learn(normalizer, net, opt_state, traj: Transition, last_obs, mask, key):
+        # ADVANTAGES (brax's GAE: a step that hit the time limit is masked out, not bootstrapped)
+        if cfg.normalize_observations:
+            normalizer = running_statistics.update(normalizer, traj.obs)
+        values = value_apply(normalizer, net["value"], traj.obs)
+        bootstrap = value_apply(normalizer, net["value"], last_obs)
+        targets, advantages = ppo_losses.compute_gae(
+            truncation=traj.truncated,
+            termination=traj.terminated,
+            rewards=traj.reward * cfg.reward_scaling,
+            values=values,
+            bootstrap_value=bootstrap,
+            lambda_=cfg.gae_lambda,
+            discount=cfg.discount,
+        )
+
+        # UPDATE NETWORK: epochs x minibatches over the flattened (T x E) samples
+        flat = jax.tree.map(
+            lambda x: x.reshape((samples,) + x.shape[2:]), (traj, advantages, targets)
+        )
+
+        def epoch(carry, key):
+            net, opt_state = carry
+            key_perm, key_loss = jax.random.split(key)
+            perm = jax.random.permutation(key_perm, samples)
+            shuffled = jax.tree.map(
+                lambda x: x[perm].reshape((cfg.num_minibatches, minibatch) + x.shape[1:]), flat
+            )
+
+            def sgd(carry, batch):
+                net, opt_state = carry
+                (transition, adv, tgt), key = batch
+                grads, entropy = grad_fn(net, normalizer, transition, adv, tgt, mask, key)
+                updates, opt_state = optimizer.update(grads, opt_state)
+                return (optax.apply_updates(net, updates), opt_state), entropy
+
+            keys = jax.random.split(key_loss, cfg.num_minibatches)
+            (net, opt_state), entropy = jax.lax.scan(sgd, (net, opt_state), (shuffled, keys))
+            return (net, opt_state), entropy.mean()
+
+        key, key_epochs = jax.random.split(key)
+        (net, opt_state), entropy = jax.lax.scan(
+            epoch, (net, opt_state), jax.random.split(key_epochs, cfg.update_epochs)
+        )
+        return normalizer, net, opt_state, key, entropy.mean()
+
+    return learn
+
+
+def reset_learners(space: Space, env: Locomotion, engine: Engine, keys, models, n: int):
+    """n fresh worlds for each of L learners (keys (L,)), learner l's on body l // (L / B) of
+    models (B,) and reset with `split(keys[l], n)`, as one flat batch of L x n worlds:
+    `(worlds, bodies, state)`, `worlds` from `engine.prepare`, `bodies` and `state` (L x n,)."""
+    per_body = keys.shape[0] // models.body_mass.shape[0] * n
+    worlds = engine.prepare(space, models, per_body)
+    bodies = repeat_worlds(jax.vmap(env.body)(models), per_body)
+    reset_keys = jax.vmap(lambda key: jax.random.split(key, n))(keys)
+    state = env.reset_worlds(engine, worlds, bodies, reset_keys.reshape((-1,) + keys.shape[1:]))
+    return worlds, bodies, state
+
+
+def make_evaluate_learners(space: Space, env: Locomotion, engine: Engine, cfg: PPOConfig):
+    """`evaluate(keys (L,), models (B,), params (L, ...)) -> (returns, diverged)`, both
+    (L, eval_episodes): L learners' deterministic policies, the episodes of learner l reset with
+    `split(keys[l], eval_episodes)`, as `make_evaluate` scores one controller."""
+    policy = jax.vmap(make_policy(space, env.cfg, cfg))
+    episodes = cfg.eval_episodes
+
     def evaluate(keys: jax.Array, models, params: Params):
-        """(L, eval_episodes) returns and diverged flags of L learners' deterministic policies,
-        the episodes of learner l reset with `split(keys[l], eval_episodes)`, as `make_evaluate`
-        scores one controller."""
-        learners, bodies = keys.shape[0], models.body_mass.shape[0]
-        per_body = learners // bodies * episodes
-        worlds = engine.prepare(space, models, per_body)
-        world_bodies = repeat_worlds(jax.vmap(env.body)(models), per_body)
-        reset_keys = jax.vmap(lambda key: jax.random.split(key, episodes))(keys)
-        state = env.reset_worlds(engine, worlds, world_bodies, reset_keys.reshape((-1,) + keys.shape[1:]))
+        learners = keys.shape[0]
+        worlds, world_bodies, state = reset_learners(space, env, engine, keys, models, episodes)
         by_learner = lambda x: x.reshape((learners, episodes) + x.shape[1:])
 
         def body(carry, _):
             state, returns, alive, diverged = carry
-            action = jax.vmap(policy)(params, by_learner(state.obs))
-            state = env.step_worlds(engine, worlds, world_bodies, state, action.reshape(-1, env.action_size))
+            action = policy(params, by_learner(state.obs))
+            state = env.step_worlds(
+                engine, worlds, world_bodies, state, action.reshape(-1, env.action_size)
+            )
             returns = returns + jnp.where(alive, by_learner(state.reward), 0.0)
             diverged = diverged | (alive & by_learner(state.diverged))
             return (state, returns, alive & ~by_learner(state.done), diverged), None
@@ -402,11 +488,11 @@ def make_train(
         zeros = jnp.zeros((learners, episodes), state.reward.dtype)
         alive = jnp.ones((learners, episodes), bool)
         (_, returns, _, diverged), _ = jax.lax.scan(
-            body, (state, zeros, alive, ~alive), length=task_cfg.episode_length
+            body, (state, zeros, alive, ~alive), length=env.cfg.episode_length
         )
         return returns, diverged
 
-    return init, train
+    return evaluate
 
 
 def env_steps_per_morphology(task_cfg: TaskConfig, cfg: PPOConfig) -> int:

@@ -8,7 +8,8 @@ is 4 physics steps of 5 ms. For each batch size B this prints:
   ppo/physics    physics steps per second inside PPO over the raw rate of the same engine
                  stepping the same B x 16 worlds with no learning (the physics limit)
   one-at-a-time  the same code evaluating the bodies with B = 1, one call each (timed on up to
-                 --single bodies and scaled to B); `batching gain` is its time over the batch's
+                 --single bodies and scaled to B); `batching gain` is its time over the batch's;
+                 both null (printed "-") with --single 0, which skips them and their B = 1 compile
   repeat diff    the largest fitness difference between the repeated calls (same program, same
                  keys): 0 when the engine and XLA are deterministic
 Timings exclude compilation (a warm-up call first) and are medians of --repeats calls.
@@ -52,6 +53,24 @@ def median_time(fn, repeats: int) -> float:
     return timed(fn, repeats)[0]
 
 
+def one_at_a_time(space, morphs, keys, cfg, single: int) -> float | None:
+    """Seconds to evaluate all B bodies with B = 1 calls, timed on the first `single` (after a
+    compile) and scaled to B; None if `single` is 0."""
+    if single == 0:
+        return None
+    pick = lambda i: jax.tree.map(lambda x: x[i : i + 1], morphs)
+    em.evaluate(space, pick(0), keys[:1], cfg).fitness.block_until_ready()  # compile B = 1
+    start = time.perf_counter()
+    for i in range(single):
+        em.evaluate(space, pick(i), keys[i : i + 1], cfg).fitness.block_until_ready()
+    return (time.perf_counter() - start) / single * morphs.active.shape[0]
+
+
+def fmt(value, spec: str) -> str:
+    """`value` formatted by `spec` ('>14.3g'), or "-" aligned to its width if None."""
+    return format("-", spec.split(".")[0]) if value is None else format(value, spec)
+
+
 def make_raw_physics(engine: engines.Engine, space, steps: int):
     """jit(fn(models (B,), worlds_per_body) -> qpos): `steps` physics steps of every world of the
     engine's flat batch with sinusoidal controls, no learning."""
@@ -78,13 +97,20 @@ def main():
     parser.add_argument("--space", default="bad_walker")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 16])
     parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--single", type=int, default=8, help="bodies timed one at a time")
+    parser.add_argument(
+        "--single",
+        type=int,
+        default=8,
+        help="bodies timed one at a time (B = 1 calls) for the batching gain; 0 skips it",
+    )
     parser.add_argument("--physics", default="jax", choices=engines.list_engines())
     parser.add_argument("--train-steps", type=int, default=10_000)
     parser.add_argument("--controllers", type=int, default=1)
     parser.add_argument("--deterministic", action="store_true", help="deterministic GPU ops")
     parser.add_argument("--out", default=None, help="append each row to this JSON-lines file")
     args = parser.parse_args()
+    if args.single < 0:
+        parser.error("--single must be >= 0")
     if args.deterministic:
         em.deterministic_gpu()
     jax.config.update("jax_default_matmul_precision", "highest")
@@ -103,13 +129,7 @@ def main():
         evaluate = lambda: em.evaluate(space, morphs, keys, cfg).fitness  # noqa: B023  (timed now)
         t_batch, repeat_diff = timed(evaluate, args.repeats)
 
-        single = min(batch, args.single)
-        pick = lambda i: jax.tree.map(lambda x: x[i : i + 1], morphs)  # noqa: B023
-        em.evaluate(space, pick(0), keys[:1], cfg).fitness.block_until_ready()  # compile B = 1
-        start = time.perf_counter()
-        for i in range(single):
-            em.evaluate(space, pick(i), keys[i : i + 1], cfg).fitness.block_until_ready()
-        t_single = (time.perf_counter() - start) / single * batch
+        t_single = one_at_a_time(space, morphs, keys, cfg, min(batch, args.single))
 
         # Raw physics at the same worlds: B bodies x K x num_envs worlds, no learning.
         models = jax.jit(jax.vmap(space.mjx_model))(morphs)
@@ -135,7 +155,7 @@ def main():
                 "ppo_over_physics": train_rate * frame_skip / physics_rate,
                 "one_at_a_time_s": t_single,
                 "batch_s": t_batch,
-                "batching_gain": t_single / t_batch,
+                "batching_gain": None if t_single is None else t_single / t_batch,
                 "repeat_diff": repeat_diff,
                 "date": time.strftime("%Y-%m-%d"),
             }
@@ -153,7 +173,8 @@ def main():
         print(
             f"{r['batch']:>5} {r['evals_per_s']:>9.3g} {r['train_steps_per_s']:>10.3g} "
             f"{r['physics_steps_per_s_raw']:>11.3g} {r['ppo_over_physics']:>9.0%} "
-            f"{r['one_at_a_time_s']:>14.3g} {r['batch_s']:>8.3g} {r['batching_gain']:>6.1f} "
+            f"{fmt(r['one_at_a_time_s'], '>14.3g')} {r['batch_s']:>8.3g} "
+            f"{fmt(r['batching_gain'], '>6.1f')} "
             f"{r['repeat_diff']:>11.3g}"
         )
 
