@@ -218,7 +218,6 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     best, best_fitness, best_params = to_host(
         (state.best_morph, state.best_fitness, state.best_params)
     )
-    best_fitness, best_cfg = float(best_fitness), p.fitness
     greedy = None
     if p.agent.scores is not None:  # the baselines have no policy to roll out
         greedy = make_greedy_rollout(p)(state.learner, state.first, key_greedy)
@@ -227,24 +226,39 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
         log_bodies.close()
     barrier("body log written")  # every process reads it in the confirm stage
     record, top = confirm_stage(out, p, cfg, step, log)
-    if top is not None:  # confirmed now: the best body and (ppo) its C fresh controllers
-        order = np.argsort(-top.values, kind="stable")  # best first: best.gif replays the 0th
-        best, best_fitness = top.morph, top.mean
-        if top.params is not None:
-            best_params = jax.tree.map(lambda x: x[order], top.params)
-            best_cfg = with_controllers(p.fitness, cfg.confirm_controllers)
-    elif record["confirmed"]:  # confirmed when the run finished before, kept on disk
-        best = Morphology.from_dict(record["best_morphology"])
-        best_fitness = record["confirmed"][0]["mean"]
-        if controllers.has_controllers(p.fitness):
-            kept = controllers.load(out / controllers.DIR / "best")
-            best_params, best_cfg = kept.params, kept.fitness
+    best, best_fitness, best_params, best_cfg = reported_best(
+        out, p, record, top, (best, float(best_fitness), best_params)
+    )
     saved = save_controllers(out, p, cfg.seed, best, best_fitness, best_params, greedy, best_cfg)
     if lead:
         if top is not None:  # written last: the stage is done, a --resume keeps it
             record["best_morphology"] = best.to_dict()
             (out / "confirmed.json").write_text(json.dumps(record, indent=1))
         write_results(out, p.space, rows, best, best_fitness, greedy, step, saved, gif, record)
+
+
+def reported_best(out: Path, p: Pipeline, record: dict, top: Confirmed | None, draw: tuple):
+    """The body a run reports as its best: (morph, fitness, controllers, their fitness config).
+
+    The confirmed best `top` with its C fresh controllers, best first (best.gif replays the
+    0th); else the best of `record` confirmed when the run first finished (its controllers read
+    back from controllers/best); else, nothing confirmed, `draw`: the highest single draw's
+    (morph, fitness, controllers).
+    """
+    if top is not None:
+        params, cfg = None, p.fitness
+        if top.params is not None:
+            order = np.argsort(-top.values, kind="stable")
+            params = jax.tree.map(lambda x: x[order], top.params)
+            cfg = with_controllers(p.fitness, len(top.values))
+        return top.morph, top.mean, params, cfg
+    if record["confirmed"]:
+        morph = Morphology.from_dict(record["best_morphology"])
+        if not controllers.has_controllers(p.fitness):
+            return morph, record["confirmed"][0]["mean"], None, p.fitness
+        kept = controllers.load(out / controllers.DIR / "best")
+        return morph, record["confirmed"][0]["mean"], kept.params, kept.fitness
+    return (*draw, p.fitness)
 
 
 def with_controllers(cfg, k: int):
