@@ -2,6 +2,7 @@
 
 from evojax_morph import physics  # noqa: F401  (first: it imports mjx quietly)
 from evojax_morph.bodylog import best_bodies
+from evojax_morph.confirm import Confirmed, confirm
 from evojax_morph.controllers import SavedController
 from evojax_morph.controllers import load as load_controller
 from evojax_morph.determinism import cpu_scheduler_workaround, deterministic_gpu
@@ -19,6 +20,7 @@ from evojax_morph.video import replay
 cpu_scheduler_workaround()  # before any JAX backend starts: see evojax_morph/determinism.py
 
 __all__ = [
+    "Confirmed",
     "FitnessConfig",
     "FitnessResult",
     "Locomotion",
@@ -30,6 +32,7 @@ __all__ = [
     "TaskConfig",
     "batch_mesh",
     "best_bodies",
+    "confirm",
     "cpu_scheduler_workaround",
     "deterministic_gpu",
     "evaluate",

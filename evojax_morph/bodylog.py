@@ -5,7 +5,8 @@ Table `bodies`, one row per evaluation: step (0: m0 as the run's reset evaluated
 equal shapes), fitness, fitness_std (over the K controllers, or the evaluation episodes),
 diverged, parent (the canonical name of the body it was mutated from; NULL at step 0). With
 controller inheritance a body's fitness depends on its lineage, so this is a log, not a cache:
-the same body appears once per evaluation.
+the same body appears once per evaluation. Table `shapes` keeps each body once (body, morphology
+as `Space.to_json`), so that a body of the log can be evaluated again (`run`'s confirm stage).
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ from evojax_morph.spaces import Space
 SCHEMA = """CREATE TABLE IF NOT EXISTS bodies (
   step INTEGER NOT NULL, evolution INTEGER NOT NULL, body TEXT NOT NULL, fitness REAL NOT NULL,
   fitness_std REAL NOT NULL, diverged INTEGER NOT NULL, parent TEXT
-)"""
+);
+CREATE TABLE IF NOT EXISTS shapes (body TEXT PRIMARY KEY, morphology TEXT NOT NULL)"""
 
 
 class BodyLog:
@@ -30,7 +32,7 @@ class BodyLog:
     def __init__(self, path: Path, space: Space):
         self.space = space
         self.db = sqlite3.connect(str(path))
-        self.db.execute(SCHEMA)
+        self.db.executescript(SCHEMA)
         self.db.execute("CREATE INDEX IF NOT EXISTS by_body ON bodies (body)")
         self.db.commit()
         self._names: dict[bytes, str] = {}
@@ -41,6 +43,8 @@ class BodyLog:
                        (m.active, m.parent, m.kind, m.site, m.attrs))
         if raw not in self._names:
             self._names[raw] = self.space.canonical(m)
+            self.db.execute("INSERT OR IGNORE INTO shapes VALUES (?, ?)",
+                            (self._names[raw], self.space.to_json(m)))
         return self._names[raw]
 
     def add(self, step: int, morphs: Morphology, fitness, fitness_std, diverged,
@@ -68,15 +72,48 @@ class BodyLog:
 
 
 def best_bodies(path: Path, n: int = 10) -> list[dict]:
-    """The `n` best distinct bodies of a log, by their best fitness: each with how often it was
-    evaluated, its best and mean fitness, and the step it was first seen."""
+    """The `n` best distinct bodies of a log, by their mean fitness over their evaluations; ties
+    go to the body evaluated more often, then to the one seen first. Each with how often it was
+    evaluated, its mean and best fitness, and the step it was first seen.
+
+    A body evaluated once ranks by that one draw, so a lucky draw can top this list: the mean
+    of a few draws is still noisy, which `run`'s confirm stage settles with fresh evaluations.
+    """
     db = sqlite3.connect(str(path))
     try:
         rows = db.execute(
-            "SELECT body, COUNT(*), MAX(fitness), AVG(fitness), MIN(step) FROM bodies "
-            "GROUP BY body ORDER BY MAX(fitness) DESC, MIN(step) LIMIT ?", (n,)
+            "SELECT body, COUNT(*), AVG(fitness), MAX(fitness), MIN(step) FROM bodies "
+            "GROUP BY body ORDER BY AVG(fitness) DESC, COUNT(*) DESC, MIN(step), body LIMIT ?",
+            (n,),
         ).fetchall()
     finally:
         db.close()
-    keys = ("body", "evaluations", "best_fitness", "mean_fitness", "first_step")
+    keys = ("body", "evaluations", "mean_fitness", "best_fitness", "first_step")
     return [dict(zip(keys, r)) for r in rows]
+
+
+def best_draw(path: Path) -> dict:
+    """The highest single evaluation of a log (the earliest of equals): body, fitness, step."""
+    db = sqlite3.connect(str(path))
+    try:
+        row = db.execute("SELECT body, fitness, step FROM bodies "
+                         "ORDER BY fitness DESC, step, evolution LIMIT 1").fetchone()
+    finally:
+        db.close()
+    return dict(zip(("body", "fitness", "step"), row))
+
+
+def shapes(path: Path, space: Space, names: list[str]) -> dict[str, Morphology]:
+    """The bodies of the log named `names`, as host-side morphologies; a name the log holds no
+    shape of (a run begun before shapes were kept) is left out."""
+    db = sqlite3.connect(str(path))
+    try:
+        found = dict(db.execute(
+            f"SELECT body, morphology FROM shapes WHERE body IN ({','.join('?' * len(names))})",
+            names,
+        ).fetchall())
+    except sqlite3.OperationalError:  # no shapes table
+        found = {}
+    finally:
+        db.close()
+    return {name: space.from_json(found[name]) for name in names if name in found}

@@ -5,7 +5,9 @@ directory: config.json, metrics.csv, bodies.sqlite (every body evaluated, `bodyl
 TensorBoard events (tb/), curve.png, trajectory.png, best.xml, summary.json and Orbax
 checkpoints, from which `resume` continues; with the PPO fitness also controllers/ (the trained
 controllers of the best body and of the greedy trajectory's, `controllers`) and best.gif (the
-best body walking, `video`).
+best body walking, `video`). At the end the confirm stage (`confirm_stage`) evaluates the
+bodies of the highest mean in the body log again from scratch (confirmed.json, confirmed.png);
+its best is the run's best body.
 """
 
 from __future__ import annotations
@@ -20,8 +22,13 @@ import jax
 import numpy as np
 
 from evojax_morph import bodylog, controllers, plots, video
+from evojax_morph.confirm import Confirmed, confirm
+from evojax_morph.fitnesses import get_fitness
+from evojax_morph.morphology import Morphology
 from evojax_morph.pipeline import Greedy, Pipeline, RunConfig, build, make_greedy_rollout
-from evojax_morph.sharding import batch_mesh, replicated, to_host
+from evojax_morph.sharding import barrier, batch_mesh, replicated, to_host
+
+CONFIRM_SALT = 0x636F6E66  # the confirm stage's key: fold_in(PRNGKey(seed), CONFIRM_SALT)
 
 
 def checkpoint_manager(out: Path):
@@ -214,26 +221,133 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     greedy = None
     if p.agent.scores is not None:  # the baselines have no policy to roll out
         greedy = make_greedy_rollout(p)(state.learner, state.first, key_greedy)
-    saved = save_controllers(out, p, cfg.seed, best, float(best_fitness), best_params, greedy)
     if lead:
         writer.close()
         log_bodies.close()
-        write_results(out, p.space, rows, best, float(best_fitness), greedy, step, saved, gif)
+    barrier("body log written")  # every process reads it in the confirm stage
+    record, top = confirm_stage(out, p, cfg, step, log)
+    best, best_fitness, best_params, best_cfg = reported_best(
+        out, p, record, top, (best, float(best_fitness), best_params)
+    )
+    saved = save_controllers(out, p, cfg.seed, best, best_fitness, best_params, greedy, best_cfg)
+    if lead:
+        if top is not None:  # written last: the stage is done, a --resume keeps it
+            record["best_morphology"] = best.to_dict()
+            (out / "confirmed.json").write_text(json.dumps(record, indent=1))
+        write_results(out, p.space, rows, best, best_fitness, greedy, step, saved, gif, record)
+
+
+def reported_best(out: Path, p: Pipeline, record: dict, top: Confirmed | None, draw: tuple):
+    """The body a run reports as its best: (morph, fitness, controllers, their fitness config).
+
+    The confirmed best `top` with its C fresh controllers, best first (best.gif replays the
+    0th); else the best of `record` confirmed when the run first finished (its controllers read
+    back from controllers/best); else, nothing confirmed, `draw`: the highest single draw's
+    (morph, fitness, controllers).
+    """
+    if top is not None:
+        params, cfg = None, p.fitness
+        if top.params is not None:
+            order = np.argsort(-top.values, kind="stable")
+            params = jax.tree.map(lambda x: x[order], top.params)
+            cfg = with_controllers(p.fitness, len(top.values))
+        return top.morph, top.mean, params, cfg
+    if record["confirmed"]:
+        morph = Morphology.from_dict(record["best_morphology"])
+        if not controllers.has_controllers(p.fitness):
+            return morph, record["confirmed"][0]["mean"], None, p.fitness
+        kept = controllers.load(out / controllers.DIR / "best")
+        return morph, record["confirmed"][0]["mean"], kept.params, kept.fitness
+    return (*draw, p.fitness)
+
+
+def with_controllers(cfg, k: int):
+    """`cfg` with K = `k` controllers per body."""
+    return dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, controllers=k))
+
+
+def confirm_stage(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print):
+    """The run's confirm stage; every process calls it, after the body log is written.
+
+    The `cfg.confirm` distinct bodies of the highest mean in the body log (`bodylog.
+    best_bodies`: ties to the body evaluated more often, then to the one seen first) are each
+    evaluated `cfg.confirm_controllers` times from scratch, in one fitness call (`confirm`):
+    fresh controllers, no inheritance, keys from `fold_in(PRNGKey(seed), CONFIRM_SALT)`, which
+    no other part of the run uses. Skipped, with a note saying why, for a deterministic fitness
+    (evaluating again gives the same values) and with --confirm 0; not done again when the run's
+    confirmed.json says it was done at this step with these settings (a --resume of a finished
+    run).
+
+    Returns:
+      (record, top): record is what confirmed.json keeps (env_steps, bodies, controllers,
+      "confirmed": summary entries best first, "confirm_note"); top is the best `Confirmed`
+      when it was evaluated now, else None.
+    """
+    n, c = cfg.confirm, cfg.confirm_controllers
+    record = {"env_steps": step, "bodies": n, "controllers": c, "confirmed": []}
+    done = out / "confirmed.json"
+    if done.exists():
+        before = json.loads(done.read_text())
+        if all(before.get(k) == record[k] for k in ("env_steps", "bodies", "controllers")):
+            log("confirm: done when the run finished, kept (confirmed.json)")
+            return before, None
+    if n == 0:
+        record["confirm_note"] = ("not run (--confirm 0): the best body is the highest single "
+                                  "draw, a noisy maximum")
+        return record, None
+    if get_fitness(cfg.fitness).deterministic:
+        record["confirm_note"] = (f"not run: the {cfg.fitness} fitness is deterministic, so an "
+                                  "evaluation again gives the same values; the best body is the "
+                                  "highest single draw")
+        log(f"confirm: {record['confirm_note']}")
+        return record, None
+    path = out / "bodies.sqlite"
+    ranked = bodylog.best_bodies(path, n)
+    shapes = bodylog.shapes(path, p.space, [b["body"] for b in ranked])
+    ranked = [b for b in ranked if b["body"] in shapes]  # bodies of a run begun before shapes
+    log(f"confirm: the {len(ranked)} bodies of the highest mean, {c} fresh evaluations each...")
+    key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), CONFIRM_SALT)
+    morphs = jax.tree.map(lambda *x: np.stack(x), *[shapes[b["body"]] for b in ranked])
+    found = confirm(p.space, morphs, key, p.fitness, c)
+    in_log = {b["body"]: b for b in ranked}
+    record["confirmed"] = [confirmed_entry(f, in_log[f.body]) for f in found]
+    record["confirm_note"] = (
+        f"the {len(found)} bodies of the highest mean in the body log, each evaluated again {c} "
+        "times from scratch (fresh keys and controllers, no inheritance) in one fitness call; "
+        f"mean and 95% Student-t interval over the {c}"
+    )
+    return record, found[0]
+
+
+def confirmed_entry(found: Confirmed, logged: dict) -> dict:
+    """summary.json's entry of a confirmed body, with its mean and count in the body log."""
+    return {
+        "body": found.body,
+        "mean": found.mean,
+        "ci95": list(found.ci95),
+        "controllers": len(found.values),
+        "values": [float(v) for v in found.values],
+        "diverged": int(found.diverged.sum()),
+        "log_mean": logged["mean_fitness"],
+        "log_evaluations": logged["evaluations"],
+    }
 
 
 def save_controllers(out: Path, p: Pipeline, seed: int, best, best_fitness: float, best_params,
-                     greedy: Greedy | None) -> list[str]:
+                     greedy: Greedy | None, best_cfg=None) -> list[str]:
     """controllers/best and controllers/stepT for the greedy trajectory's bodies, for a fitness
-    that trains controllers; every process calls it. Returns the names saved."""
+    that trains controllers; every process calls it. best_cfg: the fitness config the best
+    body's controllers were trained under (default the run's; the confirm stage's has C
+    controllers). Returns the names saved."""
     if not controllers.has_controllers(p.fitness):
         return []
-    bodies = [("best", best, best_params, best_fitness)]
+    bodies = [("best", best, best_params, best_fitness, best_cfg or p.fitness)]
     if greedy is not None:
-        bodies += [(f"step{t}", m, params, f) for t, (m, params, f)
+        bodies += [(f"step{t}", m, params, f, p.fitness) for t, (m, params, f)
                    in enumerate(zip(greedy.morphs, greedy.params, greedy.fitness))]
-    for name, morph, params, fitness in bodies:
+    for name, morph, params, fitness, fit_cfg in bodies:
         label = name if name == "best" else f"step {name[4:]}"
-        saved = controllers.SavedController(p.space, p.fitness, seed, morph, params, fitness,
+        saved = controllers.SavedController(p.space, fit_cfg, seed, morph, params, fitness,
                                             label)
         controllers.save(out / controllers.DIR / name, saved)
     return [name for name, *_ in bodies]
@@ -241,27 +355,46 @@ def save_controllers(out: Path, p: Pipeline, seed: int, best, best_fitness: floa
 
 def write_results(
     out: Path, space, rows: list[dict], best, best_fitness: float, greedy: Greedy | None,
-    steps: int, saved: list[str], gif: bool = True
+    steps: int, saved: list[str], gif: bool, record: dict
 ) -> None:
-    """curve.png, best.xml, trajectory.png (if `greedy`), summary.json and best.gif (if
-    controllers were `saved` and `gif`), and a printed digest with the best bodies of the body
-    log."""
+    """curve.png, best.xml, trajectory.png (if `greedy`), confirmed.png (if the confirm stage's
+    `record` confirmed bodies), summary.json and best.gif (if controllers were `saved` and
+    `gif`), and a printed digest with the best bodies of the body log and the confirmed ones."""
     col = lambda name: np.array([r[name] for r in rows], float)  # noqa: E731  (resumed: strings)
     plots.plot_curve(
         out / "curve.png", col("step"), col("reward_median"), col("reward_q25"), col("reward_q75")
     )
     (out / "best.xml").write_text(space.to_mjcf(best))
+    confirmed = record["confirmed"]
+    draw = bodylog.best_draw(out / "bodies.sqlite")
     summary = {
-        "best_fitness": best_fitness,
+        "best_fitness": best_fitness,  # the confirmed mean; else (not confirmed) the best draw
         "best_morphology": best.to_dict(),
+        "best_body": space.canonical(best),
+        "best_single_draw": draw,
+        "confirmed": confirmed,
+        "confirm_note": record["confirm_note"],
         "env_steps": steps,
         "greedy_trajectory": None,
         "best_bodies": bodylog.best_bodies(out / "bodies.sqlite", 10),
         "controllers": saved,
     }
-    print(f"\nbest morphology (fitness {best_fitness:.4g}):")
-    print(space.format(best))
     written = "curve.png best.xml summary.json metrics.csv bodies.sqlite tb/ checkpoints/"
+    print_best_bodies(summary["best_bodies"])
+    if confirmed:
+        print_confirmed(confirmed, record["confirm_note"])
+        plots.plot_confirmed(out / "confirmed.png", confirmed)
+        written = "confirmed.json confirmed.png " + written
+        top = confirmed[0]
+        what = (f"confirmed mean {top['mean']:.4g}, 95% CI [{top['ci95'][0]:.4g}, "
+                f"{top['ci95'][1]:.4g}] over {top['controllers']} fresh controllers")
+    else:
+        print(f"\nconfirm: {record['confirm_note']}")
+        what = f"fitness {best_fitness:.4g}, its highest single draw"
+    print(f"\nhighest single draw: {draw['fitness']:.4g} by {draw['body']} at step "
+          f"{draw['step']}")
+    print(f"\nbest morphology ({what}):")
+    print(space.format(best))
     if greedy is not None:
         morphs, fitness, actions, _ = greedy
         plots.plot_trajectory(out / "trajectory.png", space, morphs, fitness, actions)
@@ -274,7 +407,6 @@ def write_results(
             print(f"  {a:<32} fitness {f:.4g}")
         print(f"\nfinal greedy morphology:\n{space.format(morphs[-1])}")
         written = "trajectory.png " + written
-    print_best_bodies(summary["best_bodies"])
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     if saved:
         written += " controllers/"
@@ -290,8 +422,18 @@ def write_results(
 
 
 def print_best_bodies(best: list[dict]) -> None:
-    print(f"\nthe {len(best)} best distinct bodies evaluated (bodies.sqlite):")
-    print(f"  {'best f':>9} {'mean f':>9} {'evals':>5} {'first':>5}  body")
+    print(f"\nthe {len(best)} distinct bodies of the highest mean fitness in the run "
+          "(bodies.sqlite):")
+    print(f"  {'mean f':>9} {'evals':>5} {'best f':>9} {'first':>5}  body")
     for b in best:
-        print(f"  {b['best_fitness']:9.4g} {b['mean_fitness']:9.4g} {b['evaluations']:5d} "
+        print(f"  {b['mean_fitness']:9.4g} {b['evaluations']:5d} {b['best_fitness']:9.4g} "
               f"{b['first_step']:5d}  {b['body']}")
+
+
+def print_confirmed(confirmed: list[dict], note: str) -> None:
+    print(f"\nconfirmed: {note}:")
+    print(f"  {'mean':>9} {'95% CI':>21} {'log mean':>9} {'evals':>5}  body")
+    for c in confirmed:
+        ci = f"[{c['ci95'][0]:.4g}, {c['ci95'][1]:.4g}]"
+        print(f"  {c['mean']:9.4g} {ci:>21} {c['log_mean']:9.4g} {c['log_evaluations']:5d}  "
+              f"{c['body']}")

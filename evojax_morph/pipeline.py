@@ -43,6 +43,8 @@ class RunConfig:
     learning_starts: int = 32  # (qr)dqn: transitions stored before the Q-network learns
     chunk: int = 5  # environment steps per jitted call
     checkpoint_every: int = 1  # chunks between checkpoints
+    confirm: int = 4  # bodies of the highest mean evaluated again at the end; 0: none
+    confirm_controllers: int = 4  # fresh evaluations (controllers) per confirmed body
 
 
 class Pipeline(NamedTuple):

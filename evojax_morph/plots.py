@@ -1,4 +1,5 @@
-"""Figures: a run's learning curve, the morphologies of its greedy trajectory, TAME's training."""
+"""Figures: a run's learning curve, the morphologies of its greedy trajectory, its confirmed
+bodies, TAME's training."""
 
 from __future__ import annotations
 
@@ -84,6 +85,25 @@ def plot_trajectory(
         if i:
             title = f"{actions[i - 1]}\n" + title
         ax.set_title(title, fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_confirmed(path, confirmed: list[dict]) -> None:
+    """The confirmed bodies, best at the top: each one's mean over its fresh evaluations with its
+    95% interval, beside its mean in the run's body log (`summary.json`'s "confirmed")."""
+    n = len(confirmed)
+    fig, ax = plt.subplots(figsize=(7, 0.9 + 0.45 * n))
+    y = np.arange(n)[::-1]
+    mean = np.array([c["mean"] for c in confirmed])
+    lo, hi = (np.array([c["ci95"][i] for c in confirmed]) for i in (0, 1))
+    ax.errorbar(mean, y, xerr=[mean - lo, hi - mean], fmt="o", capsize=3,
+                label=f"fresh: mean, 95% CI ({confirmed[0]['controllers']} controllers)")
+    ax.plot([c["log_mean"] for c in confirmed], y, "x", color="grey", label="run: log mean")
+    ax.set_yticks(y, [c["body"] for c in confirmed], fontsize=6)
+    ax.set_xlabel("fitness")
+    ax.legend(loc="best", fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -74,10 +74,26 @@ def test_physics_that_cannot_run_exits_with_2(monkeypatch, capsys, tmp_path):
 
 @pytest.fixture(scope="module")
 def straight(tmp_path_factory):
-    """An uninterrupted 9-step run, seed 3 (checkpoints at steps 3, 6 and 9)."""
+    """An uninterrupted 9-step run, seed 3 (checkpoints at steps 3, 6 and 9). Its confirm stage
+    makes no fitness call: the predefined fitness is deterministic."""
     out = tmp_path_factory.mktemp("straight") / "run"
-    assert run.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)]) == 0
+
+    def no_call(*_, **__):
+        raise AssertionError("a deterministic fitness confirmed")
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(driver, "confirm", no_call)
+        assert run.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)]) == 0
     return out
+
+
+def test_confirm_is_a_no_op_on_a_deterministic_fitness(straight):
+    summary = json.loads((straight / "summary.json").read_text())
+    assert summary["confirmed"] == [] and "deterministic" in summary["confirm_note"]
+    assert not (straight / "confirmed.json").exists() and not (straight / "confirmed.png").exists()
+    draw = summary["best_single_draw"]  # the best body is the highest draw, its true value
+    assert summary["best_fitness"] == pytest.approx(draw["fitness"])
+    assert summary["best_body"] == draw["body"]
 
 
 def test_resume_matches_an_uninterrupted_run(tmp_path, straight):
@@ -186,6 +202,10 @@ def test_body_log_of_a_resumed_run(tmp_path):
     summary = json.loads((straight / "summary.json").read_text())
     best = em.best_bodies(straight / "bodies.sqlite", 3)
     assert summary["best_bodies"][:3] == best
-    assert best[0]["best_fitness"] == pytest.approx(summary["best_fitness"])
-    assert sum(b["evaluations"] for b in em.best_bodies(straight / "bodies.sqlite", 99)) == 40
+    every = em.best_bodies(straight / "bodies.sqlite", 99)
+    means = [b["mean_fitness"] for b in every]
+    assert means == sorted(means, reverse=True)  # ranked by mean
+    # not by the best value: one canonical body holds slot arrangements of other values
+    assert max(b["best_fitness"] for b in every) == pytest.approx(summary["best_fitness"])
+    assert sum(b["evaluations"] for b in every) == 40
     assert summary["controllers"] == [] and not (straight / "best.gif").exists()

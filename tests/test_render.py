@@ -1,5 +1,6 @@
 """Saved controllers, their replay and its video (matplotlib fallback), the render command, and
-the console scripts. The one PPO training here is a 1-update `em.evaluate` of two bodies."""
+the console scripts. The PPO trainings here are 1-update `em.evaluate`s of two bodies (and
+`em.confirm`'s of two bodies x two controllers, in the confirm stage's test)."""
 
 import dataclasses
 import os
@@ -15,7 +16,7 @@ import pytest
 from PIL import Image
 
 import evojax_morph as em
-from evojax_morph import controllers, driver, ppo, render, video
+from evojax_morph import bodylog, controllers, driver, ppo, render, video
 from evojax_morph.pipeline import Greedy, RunConfig, build
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,6 +57,38 @@ def test_saved_controllers_round_trip(run_dir):
         controllers.body_dir(out, "worst")
     with pytest.raises(FileNotFoundError, match="saved steps: 0, 1"):
         controllers.body_dir(out, "step 5")
+
+
+def test_confirmed_best_keeps_its_fresh_controllers(run_dir, tmp_path):
+    """The confirm stage on the PPO fitness (one PPO update per controller here): C = 2
+    controllers trained afresh on each body of the log; the best body's are saved, best first,
+    and read back when a finished run is resumed."""
+    _, p, _, _ = run_dir
+    space = p.space
+    log = bodylog.BodyLog(tmp_path / "bodies.sqlite", space)
+    log.add(0, em.stack([space.initial(), space.optimum()]), [1.0, 2.0], [0.0, 0.0], [0, 0])
+    log.commit()
+    log.close()
+    cfg = RunConfig(fitness="ppo", train_steps=320, controllers=2, confirm=2,
+                    confirm_controllers=2)
+    record, top = driver.confirm_stage(tmp_path, p, cfg, 0)
+    confirmed = record["confirmed"]
+    assert [c["log_mean"] for c in confirmed] in ([2.0, 1.0], [1.0, 2.0])
+    assert top.body == confirmed[0]["body"] and top.mean == confirmed[0]["mean"]
+    assert [c["controllers"] for c in confirmed] == [2, 2]
+    best, fitness, params, best_cfg = driver.reported_best(tmp_path, p, record, top, None)
+    assert best_cfg.ppo.controllers == 2 and fitness == top.mean
+    driver.save_controllers(tmp_path, p, 7, best, fitness, params, None, best_cfg)
+    kept = em.load_controller(controllers.body_dir(tmp_path, "best"))
+    assert kept.fitness.ppo.controllers == 2 and kept.value == top.mean
+    order = np.argsort(-top.values, kind="stable")  # controller 0 the best, for best.gif
+    for saved, trained in zip(jax.tree.leaves(kept.params), jax.tree.leaves(top.params)):
+        np.testing.assert_array_equal(saved, trained[order])
+    record["best_morphology"] = best.to_dict()  # as confirmed.json keeps it
+    again = driver.reported_best(tmp_path, p, record, None, None)
+    assert space.canonical(again[0]) == top.body and again[3] == best_cfg
+    for x, y in zip(jax.tree.leaves(again[2]), jax.tree.leaves(kept.params)):
+        np.testing.assert_array_equal(x, y)
 
 
 def test_replay_is_the_fitness_evaluation_episode(run_dir):

@@ -38,6 +38,8 @@ def test_a_run_on_four_devices_resumes_on_one(tmp_path):
         "--horizon",  # a greedy rollout of 2 evaluations, not Bad Walker's 5
         "2",
         "--no-gif",  # tests/test_render.py draws a run's best.gif; here it would cost a minute
+        "--confirm",  # and tests its confirm stage on the PPO fitness: here it would compile
+        "0",  # twice more (4 devices, then 1)
         "--out",
         str(out),
     ]

@@ -181,6 +181,8 @@ def test_cli_runs_with_the_tame_fitness(trained, tmp_path, capsys):
                 "2",
                 "--chunk",
                 "2",
+                "--confirm",  # its confirm stage would compile the fitness again (test_confirm)
+                "0",
                 "--out",
                 str(tmp_path / "r"),
             ]

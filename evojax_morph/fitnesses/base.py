@@ -91,6 +91,8 @@ class Fitness(NamedTuple):
       the batch across devices and jit it).
     trains_controllers: whether its results carry trained controllers worth keeping (saved with
       the bodies, replayed by `render`).
+    deterministic: whether a body's fitness is the same for every key (evaluating it again
+      tells nothing new: `run` skips its confirm stage).
     """
 
     name: str
@@ -98,6 +100,7 @@ class Fitness(NamedTuple):
     scale: Callable[[Space], float]
     make: Callable[[Space, FitnessConfig], tuple[Callable | None, Callable]]
     trains_controllers: bool = False
+    deterministic: bool = False
 
 
 _REGISTRY: dict[str, Fitness] = {}

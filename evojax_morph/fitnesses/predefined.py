@@ -23,4 +23,5 @@ FITNESS = Fitness(
     validate=lambda cfg: None,
     scale=lambda space: space.fitness_scale,
     make=make,
+    deterministic=True,
 )

@@ -1,0 +1,133 @@
+"""The confirm stage: `em.confirm`'s fresh evaluations and interval, the body log ranked by mean,
+and `run` on a table with a planted lucky body (cheap: the table fitness, the random agent)."""
+
+import json
+import shutil
+import sqlite3
+
+import jax
+import numpy as np
+import pytest
+import scipy.stats
+
+import evojax_morph as em
+from evojax_morph import bodylog, driver, run
+from evojax_morph.fitnesses import table as tb
+
+S = 8  # results a body in the tables here
+STEADY, LUCKY, UNLUCKY = 350.0, 400.0, -1000.0
+
+
+@pytest.fixture(scope="module")
+def walker():
+    space = em.make_space("bad_walker")
+    bodies, _ = space.enumerate_bodies()
+    return space, bodies, [space.canonical(m) for m in bodies]
+
+
+def save_table(walker, path, fitness) -> None:
+    space, bodies, names = walker
+    tb.Table(space.name, names, tb.stacked(bodies), np.asarray(fitness, np.float32),
+             np.zeros(np.shape(fitness), bool), {}).save(path)
+
+
+@pytest.fixture(scope="module")
+def planted(walker, tmp_path_factory):
+    """A 4-step run on a table where m0 scores 350 every time and every other body 400 in 2 of
+    8 draws, else -1000 (mean -650): a lucky draw is the run's highest, m0 the best body (8
+    fresh draws of another body beat 350 only if all 8 are 400)."""
+    space, bodies, _ = walker
+    fitness = np.full((len(bodies), S), UNLUCKY)
+    fitness[:, :2] = LUCKY
+    fitness[0] = STEADY  # enumerate_bodies starts at m0
+    path = tmp_path_factory.mktemp("table") / "planted.npz"
+    save_table(walker, path, fitness)
+    out = tmp_path_factory.mktemp("planted") / "run"
+    args = ["--space", "bad_walker", "--fitness", "table", "--table", str(path), "--agent",
+            "random", "--num-envs", "4", "--steps", "4", "--chunk", "2", "--seed", "1",
+            "--confirm", "8", "--confirm-controllers", "8", "--out", str(out)]
+    assert run.main(args) == 0
+    return out, args
+
+
+def test_a_lucky_draw_is_not_the_best_body(planted, walker):
+    out, _ = planted
+    space, _, names = walker
+    summary = json.loads((out / "summary.json").read_text())
+    draw, confirmed = summary["best_single_draw"], summary["confirmed"]
+    assert draw["fitness"] == LUCKY and draw["body"] != names[0]  # the run was fooled by a draw
+    assert names[0] in [c["body"] for c in confirmed]  # m0 was a candidate
+    assert summary["best_body"] == confirmed[0]["body"] == names[0]
+    assert summary["best_fitness"] == confirmed[0]["mean"] == STEADY
+    assert confirmed[0]["ci95"] == [STEADY, STEADY]  # the same value 8 times
+    assert space.canonical(em.Morphology.from_dict(summary["best_morphology"])) == names[0]
+    assert (out / "best.xml").read_text() == space.to_mjcf(space.initial())
+    for c in confirmed:
+        assert c["controllers"] == len(c["values"]) == 8
+        assert set(c["values"]) <= ({STEADY} if c["body"] == names[0] else {LUCKY, UNLUCKY})
+    means = [c["mean"] for c in confirmed]
+    assert means == sorted(means, reverse=True)
+    assert (out / "confirmed.png").stat().st_size > 0
+    assert summary["best_bodies"] == em.best_bodies(out / "bodies.sqlite", 10)
+
+
+def test_resume_of_a_finished_run_does_not_confirm_again(planted, tmp_path, monkeypatch):
+    out, args = planted
+    again = tmp_path / "run"
+    shutil.copytree(out, again)
+
+    def no_call(*_, **__):
+        raise AssertionError("confirmed again")
+
+    monkeypatch.setattr(driver, "confirm", no_call)
+    assert run.main(["--out", str(again), "--resume", "--steps", "4"]) == 0
+    for name in ("summary.json", "confirmed.json"):
+        assert (again / name).read_text() == (out / name).read_text()
+
+
+def test_confirm_interval_and_values(walker, tmp_path):
+    """Every value a draw of the body's own row (row r's values are 1000 r + s), the mean and
+    the Student-t interval of those values, best first; the values are em.evaluate's of the
+    bodies repeated C times with one controller each, with the same key."""
+    space, bodies, _ = walker
+    fitness = 1000.0 * np.arange(len(bodies))[:, None] + np.arange(S)[None] ** 2
+    save_table(walker, tmp_path / "t.npz", fitness)
+    cfg = em.FitnessConfig(kind="table", table=str(tmp_path / "t.npz"),
+                           ppo=em.standard_ppo(0, 3))  # the run's K does not matter
+    rows, c = [2, 7, 5], 5
+    key = jax.random.PRNGKey(4)
+    found = em.confirm(space, em.stack([bodies[r] for r in rows]), key, cfg, c)
+    assert [f.body for f in found] == [space.canonical(bodies[r]) for r in (7, 5, 2)]
+    for f, r in zip(found, (7, 5, 2)):
+        assert f.values.shape == (c,) and f.params is None and not f.diverged.any()
+        assert set(f.values - 1000 * r) <= set(np.arange(S) ** 2)
+        values = f.values.astype(np.float64)
+        assert f.mean == values.mean()
+        half = scipy.stats.t.ppf(0.975, c - 1) * values.std(ddof=1) / np.sqrt(c)
+        np.testing.assert_allclose(f.ci95, [f.mean - half, f.mean + half], rtol=1e-9)
+        assert f.ci95[0] <= f.mean <= f.ci95[1]
+    one = em.FitnessConfig(kind="table", table=str(tmp_path / "t.npz"), ppo=em.standard_ppo(0))
+    direct = em.evaluate(space, em.stack([bodies[r] for r in rows for _ in range(c)]), key, one)
+    by_row = dict(zip(rows, np.asarray(direct.fitness).reshape(len(rows), c)))
+    for f, r in zip(found, (7, 5, 2)):
+        np.testing.assert_array_equal(f.values, by_row[r])
+    with pytest.raises(ValueError, match="at least 2"):
+        em.confirm(space, em.stack(bodies[:2]), key, cfg, 1)
+
+
+def test_body_log_ranks_by_mean(tmp_path):
+    """Mean first, then more evaluations, then the step first seen; the best draw apart."""
+    path = tmp_path / "bodies.sqlite"
+    space = em.make_space("bad_walker")
+    bodylog.BodyLog(path, space).close()
+    rows = [(0, 0, "lucky", 90.0), (1, 0, "lucky", 0.0), (1, 1, "single", 40.0),
+            (2, 0, "steady", 40.0), (2, 1, "steady", 40.0), (3, 0, "late", 40.0)]
+    db = sqlite3.connect(path)
+    db.executemany("INSERT INTO bodies VALUES (?, ?, ?, ?, 0, 0, NULL)", rows)
+    db.commit()
+    db.close()
+    best = em.best_bodies(path)
+    assert [b["body"] for b in best] == ["lucky", "steady", "single", "late"]
+    assert [b["evaluations"] for b in best] == [2, 2, 1, 1]
+    assert best[0]["mean_fitness"] == 45.0 and best[0]["best_fitness"] == 90.0
+    assert bodylog.best_draw(path) == {"body": "lucky", "fitness": 90.0, "step": 0}
