@@ -13,8 +13,8 @@ figures from the data files alone.
   compare              actor-critic, Double-DQN, evolution and random walks on Constructor at
                        equal evaluations; each returned body confirmed
 
-A body is "confirmed" by --confirm-controllers controllers trained from scratch (no
-inheritance) with fresh keys in one batched call: the mean and its 95% t-interval.
+A body is "confirmed" by `em.confirm`: --confirm-controllers controllers trained from scratch
+(no inheritance) with fresh keys in one batched call, the mean and its 95% t-interval.
 
   python -m experiments.reproduce --stages fig6_h20 fig6_h100 fig5 --physics warp --budget 480
   python -m experiments.reproduce --draw --data docs/figures/reproduce --out docs/figures
@@ -27,7 +27,6 @@ import argparse
 import dataclasses
 import datetime
 import json
-import math
 import pickle
 import sys
 import time
@@ -97,21 +96,15 @@ def record(g: Group, args, seconds: float, **data) -> dict:
 
 
 def confirm(space, morphs: list, key, args) -> list[dict]:
-    """Each body trained afresh with C controllers (no inheritance) in one call: mean and 95%
-    t-interval of the mean over the C results."""
-    c = args.confirm_controllers
+    """`em.confirm` of each body (once per distinct body), in the order of `morphs`."""
+    distinct = {space.canonical(m): m for m in morphs}
     cfg = em.FitnessConfig(kind="ppo", physics=args.physics,
                            ppo=em.standard_ppo(args.train_steps, 1))
-    bodies = em.stack([m for m in morphs for _ in range(c)])
-    res = em.evaluate(space, bodies, jax.random.split(key, len(morphs) * c), cfg)
-    values = np.asarray(res.fitness, np.float64).reshape(len(morphs), c)
-    half = T975.get(c - 1, 1.96) * values.std(1, ddof=1) / math.sqrt(c)
-    return [{"body": space.canonical(m), "mean": float(v.mean()),
-             "ci95": [float(v.mean() - h), float(v.mean() + h)], "controllers": c}
-            for m, v, h in zip(morphs, values, half)]
-
-
-T975 = {1: 12.71, 3: 3.18, 7: 2.36, 15: 2.13, 31: 2.04, 63: 2.00}  # Student t, 97.5%, by dof
+    found = em.confirm(space, em.stack(list(distinct.values())), key, cfg,
+                       args.confirm_controllers)
+    by_name = {c.body: {"body": c.body, "mean": c.mean, "ci95": list(c.ci95),
+                        "controllers": len(c.values)} for c in found}
+    return [by_name[space.canonical(m)] for m in morphs]
 
 
 def run_group(name: str, g: Group, args, deadline: float) -> bool:
@@ -163,11 +156,10 @@ def unroll(name: str, of: str, args) -> bool:
         learner, first = jax.tree.map(lambda x, s=seed: x[s], (trained["learner"],
                                                                trained["first"]))
         unrolls.append(rollout(learner, first, jax.random.PRNGKey(100 + seed)))
-    bodies = {p.space.canonical(m): m for u in unrolls for m in u.morphs}
-    confirmed = dict(zip(bodies, confirm(p.space, list(bodies.values()),
-                                         jax.random.PRNGKey(12), args)))
+    morphs = [m for u in unrolls for m in u.morphs]
+    confirmed = iter(confirm(p.space, morphs, jax.random.PRNGKey(12), args))
     data = {"unrolls": [{"actions": u.actions,
-                         "bodies": [confirmed[p.space.canonical(m)] for m in u.morphs],
+                         "bodies": [next(confirmed) for _ in u.morphs],
                          "inherited_fitness": u.fitness} for u in unrolls],
             "confirm_controllers": args.confirm_controllers}
     path.write_text(json.dumps(record(g, args, time.time() - start, of=of, **data), indent=1))
@@ -186,7 +178,7 @@ def draw(data: Path, out: Path) -> None:
     if {"fig6_h20", "fig6_h100"} & have:
         fig, (ax_r, ax_b) = plt.subplots(1, 2, figsize=(10, 3.6))
         runs = {n: load(n) for n in ("fig6_h20", "fig6_h100") if n in have}
-        for n, r in runs.items():
+        for r in runs.values():
             ret, best = np.asarray(r["returns"]), np.asarray(r["best_fitness"])
             band(ax_r, np.arange(1, len(ret) + 1), ret, f"hidden {r['hidden']}")
             band(ax_b, r["num_envs"] * np.arange(1, len(best) + 1), best, f"hidden {r['hidden']}")
