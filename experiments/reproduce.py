@@ -70,8 +70,8 @@ STAGES = {"fig6_h20": ["fig6_h20"], "fig6_h100": ["fig6_h100"], "fig5": ["fig5"]
 
 
 def toy(g: Group) -> Group:
-    """The CPU smoke's size: 2 seeds of 2 evolutions x 4 steps."""
-    return dataclasses.replace(g, num_envs=2, steps=4, chunk=2, seeds=2,
+    """The CPU smoke's size: 2 seeds of 2 evolutions x 8 steps (an episode of either space)."""
+    return dataclasses.replace(g, num_envs=2, steps=8, chunk=4, seeds=2,
                                hidden=min(g.hidden, 20))
 
 

@@ -160,38 +160,6 @@ def test_landscape_enumerates_ranks_and_round_trips(tmp_path):
             "fig4_predefined",
         ),
         (
-            "fig6_ddqn_hidden",
-            [
-                "--fitness",
-                "predefined",
-                "--steps",
-                "8",
-                "--chunk",
-                "8",
-                "--num-envs",
-                "4",
-                "--seeds",
-                "2",
-            ],
-            "fig6_ddqn_hidden",
-        ),
-        (
-            "fig8_a2c_constructor",
-            [
-                "--fitness",
-                "predefined",
-                "--steps",
-                "16",
-                "--chunk",
-                "16",
-                "--num-envs",
-                "4",
-                "--seeds",
-                "2",
-            ],
-            "fig8_a2c_constructor",
-        ),
-        (
             "compare",
             [
                 "--fitness",
