@@ -17,8 +17,9 @@ those; its cost, confirm x confirm-draws results, is not counted in the run's ev
 regret is also judged against what the table can tell apart: the bodies whose difference to
 the table's best has a bootstrap 95% interval (over each body's results) containing 0. Also
 kept: the true fitness of the best body each run ever evaluated (what it found, whether or not
-it returned it), and the number of distinct bodies it evaluated. Per method and K: median and mean regret with bootstrap
-95% intervals over seeds; pairwise, each RL agent against evolution and against random: the
+it returned it), and the number of distinct bodies it evaluated. Per method, K and rule: median
+and mean regret with bootstrap 95% intervals over seeds; pairwise, each RL agent against
+evolution and against random (and plain DQN against Double-DQN): the
 difference of mean true fitness with bootstrap 95% intervals, over seeds alone (the table's
 means taken as exact) and over seeds and the table's results (the means are estimates of S
 results each), and P(a seed of A beats a seed of B). Wall-clock: the vmapped batch of all seeds

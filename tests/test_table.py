@@ -43,6 +43,18 @@ def synthetic(walker, path, drop=None, nan=False):
     return table
 
 
+def count_keys(monkeypatch) -> list:
+    """Patches `em.evaluate` (as the table builder calls it) to record the keys of each call."""
+    evaluated, real = [], em.evaluate
+
+    def counting(space, morphs, keys, cfg):
+        evaluated.append(np.asarray(keys))
+        return real(space, morphs, keys, cfg)
+
+    monkeypatch.setattr(em, "evaluate", counting)
+    return evaluated
+
+
 def config(path, k=1):
     return em.FitnessConfig(kind="table", table=str(path), ppo=em.standard_ppo(0, k))
 
@@ -173,14 +185,7 @@ def test_builder_resumes_and_refuses_other_settings(walker, tmp_path, monkeypatc
     out = str(tmp_path / "bw.npz")
     args = ["--space", "bad_walker", "--fitness", "predefined", "--seeds", "2", "--batch", "64",
             "--out", out]
-    evaluated = []
-    real = em.evaluate
-
-    def counting(space, morphs, keys, cfg):
-        evaluated.append(np.asarray(keys))
-        return real(space, morphs, keys, cfg)
-
-    monkeypatch.setattr(em, "evaluate", counting)
+    real, evaluated = em.evaluate, count_keys(monkeypatch)
     build_tables.main(args + ["--max-batches", "1"])
     first = tb.Table.load(out)
     assert first.done.sum() == 64 and not first.done.all()
@@ -223,14 +228,7 @@ def test_deep_rows_are_built_and_drawn_from(walker, tmp_path, monkeypatch):
     the table fitness draws K among a row's measured results only, all of them in a deep row."""
     space, bodies, names = walker
     out = str(tmp_path / "deep.npz")
-    evaluated = []
-    real = em.evaluate
-
-    def counting(space, morphs, keys, cfg):
-        evaluated.append(np.asarray(keys))
-        return real(space, morphs, keys, cfg)
-
-    monkeypatch.setattr(em, "evaluate", counting)
+    real, evaluated = em.evaluate, count_keys(monkeypatch)
     build_tables.main(["--space", "bad_walker", "--fitness", "predefined", "--seeds", "2",
                        "--batch", "64", "--deep-top", "3", "--deep-seeds", "5", "--out", out])
     table = tb.Table.load(out)
