@@ -23,10 +23,12 @@ def space(request):
 
 
 # The longest files first, in this order (pyproject's --no-loadscope-reorder keeps it: xdist
-# would otherwise start the files with the most tests first and these two 4-device
-# subprocesses, one test each, last, ending the suite alone).
-FIRST = ("test_sharding.py", "test_sharding_run.py", "test_fitness.py", "test_physics.py",
-         "test_warp.py", "test_tame.py", "test_render.py", "test_search.py", "test_cli.py")
+# would otherwise start the files with the most tests first and the longest last, ending the
+# suite alone). Measured cold, in CPU seconds (docs/benchmarks.md, "The test suite"). In the
+# slow set the two 4-device subprocesses, one test a file, start together on both workers.
+FIRST = ("test_sharding.py", "test_sharding_run.py", "test_physics.py", "test_fitness.py",
+         "test_warp.py", "test_render.py", "test_tame.py", "test_agent.py", "test_search.py",
+         "test_table.py", "test_cli.py")
 
 
 def pytest_collection_modifyitems(config, items):

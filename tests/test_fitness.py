@@ -18,6 +18,7 @@ from evojax_morph.spaces import bad_walker as bw
 # evaluates the controller it is given.
 CFG = em.FitnessConfig(ppo=em.standard_ppo(40_000))
 EVAL_ONLY = em.FitnessConfig(ppo=dataclasses.replace(CFG.ppo, train_steps=0))
+BRIEF = em.FitnessConfig(ppo=dataclasses.replace(CFG.ppo, train_steps=CFG.ppo.num_envs * CFG.ppo.unroll_length))
 # Seeds of every learning statistic below: one PPO run is a coin with a bias (a gait is found or
 # not), so the tests assert medians over seeds, with margins measured over 20 other seeds by
 # `python -m experiments.learning_margins --seeds 20` (2 CPU cores, jax 0.10.2).
@@ -37,22 +38,42 @@ def footless(space):
 
 
 @pytest.fixture(scope="module")
-def trained(walker):
-    """SEEDS seeds of m* trained from scratch, a body with no motor and a child of m*, in one
-    jitted, vmapped `train` call (the first SEEDS + 2 of `gen1`, whose other bodies are children
-    of m* for the evaluation-only tests); and the evaluation-only `train`, vmapped and traced
-    once for every batch of 2 x SEEDS bodies below (jit-once check)."""
+def bodies(walker):
+    """SEEDS copies of m*, a body with no motor and SEEDS - 1 children of m* (`gen1`), a key and
+    a fresh controller for each, and the evaluation-only `train`, vmapped and traced once for
+    every batch of 2 x SEEDS bodies below (jit-once check)."""
     chex.clear_trace_counter()
-    init, train = ppo.make_train(walker, CFG.task, CFG.ppo)
     _, evaluate = ppo.make_train(walker, EVAL_ONLY.task, EVAL_ONLY.ppo)
     evaluate = jax.jit(chex.assert_max_traces(evaluate, n=1))
     child = walker.mutate(walker.optimum(), bw.FRONT, 2)  # front foot one site inward
     keys = jax.random.split(jax.random.PRNGKey(0), 2 * SEEDS)
+    init, _ = ppo.make_train(walker, CFG.task, CFG.ppo)
     fresh = jax.jit(jax.vmap(init))(keys)
     gen1 = em.stack([walker.optimum()] * SEEDS + [footless(walker)] + [child] * (SEEDS - 1))
+    return gen1, keys, fresh, child, evaluate
+
+
+def train_first(walker, bodies, cfg):
+    """The first SEEDS + 2 bodies of `gen1` (SEEDS m*, the motorless one, a child) trained from
+    their fresh controllers in one jitted, vmapped `train` call at `cfg`'s budget."""
+    gen1, keys, fresh, _, _ = bodies
+    _, train = ppo.make_train(walker, cfg.task, cfg.ppo)
     first = lambda tree: jax.tree.map(lambda x: x[: SEEDS + 2], tree)  # noqa: E731
-    out1 = jax.jit(train)(keys[: SEEDS + 2], first(gen1), first(fresh))
-    return gen1, keys, out1, fresh, child, evaluate
+    return jax.jit(train)(keys[: SEEDS + 2], first(gen1), first(fresh))
+
+
+@pytest.fixture(scope="module")
+def trained(walker, bodies):
+    """`bodies` with the first SEEDS + 2 trained at the learning tests' budget (CFG)."""
+    gen1, keys, fresh, child, evaluate = bodies
+    return gen1, keys, train_first(walker, bodies, CFG), fresh, child, evaluate
+
+
+@pytest.fixture(scope="module")
+def one_update(walker, bodies):
+    """The same SEEDS + 2 bodies trained one PPO update (BRIEF): what the tests that need
+    trained controllers, but not a gait, train (a fraction of the learning budget's run)."""
+    return train_first(walker, bodies, BRIEF)
 
 
 def zero_controller(params):
@@ -72,9 +93,10 @@ def test_m_star_learns_to_walk(walker, trained):
     assert np.all(np.isfinite(np.asarray(out1.fitness))) and not np.asarray(out1.diverged).any()
 
 
-def test_no_motor_no_fitness(trained):
-    _, _, out1, _, _, _ = trained
-    assert abs(float(out1.fitness[SEEDS])) < 1.0  # a trunk alone cannot move itself
+def test_no_motor_no_fitness(one_update):
+    """A trunk alone cannot move itself, trained or not (one update: a reward that paid a body
+    without motors would show already; the learning budget's run is `trained`)."""
+    assert abs(float(one_update.fitness[SEEDS])) < 1.0
 
 
 @pytest.mark.learning
@@ -99,7 +121,7 @@ def test_inherited_controller_hands_over_a_gait(trained):
     assert np.median(inherited - scratch) > 5, (inherited, scratch)
 
 
-def test_batch_equals_one_at_a_time(walker, trained):
+def test_batch_equals_one_at_a_time(walker, bodies):
     """Each body of a batch gets what it would get alone with the same key and controller.
 
     Compared on evaluation of untrained controllers (physics, task and policy under vmap).
@@ -108,7 +130,7 @@ def test_batch_equals_one_at_a_time(walker, trained):
     flips of near-zero gradients under a different reduction order become visible, and a
     walking gait can turn a 1e-7 difference into a fall.
     """
-    gen1, keys, _, fresh, _, _ = trained
+    gen1, keys, fresh, _, _ = bodies
     batch = em.evaluate(walker, gen1, keys, EVAL_ONLY, fresh)
     for i in (0, SEEDS, 2 * SEEDS - 1):
         pick = lambda tree: jax.tree.map(lambda x: x[i : i + 1], tree)  # noqa: B023
@@ -118,12 +140,12 @@ def test_batch_equals_one_at_a_time(walker, trained):
     assert len(set(np.round(np.asarray(batch.fitness), 3))) > 2  # different bodies, different results
 
 
-def test_flat_world_batch_equals_one_world_at_a_time(walker, trained):
+def test_flat_world_batch_equals_one_world_at_a_time(walker, bodies):
     """The fitness steps every world of every body as one flat batch; it scores a controller as
     the path of one body and one world at a time does (`ppo.make_evaluate`, which replays use):
     same keys, untrained controllers, equal to rounding (tolerance as in the test above)."""
-    gen1, keys, _, fresh, _, evaluate = trained
-    batch = evaluate(keys, gen1, fresh)
+    gen1, keys, fresh, _, _ = bodies
+    batch = em.evaluate(walker, gen1, keys, EVAL_ONLY, fresh)  # the program of the test above
     one = jax.jit(ppo.make_evaluate(walker, EVAL_ONLY.task, EVAL_ONLY.ppo))
     for i in (0, SEEDS, 2 * SEEDS - 1):
         pick = lambda tree: jax.tree.map(lambda x: x[i], tree)  # noqa: B023
@@ -133,10 +155,12 @@ def test_flat_world_batch_equals_one_world_at_a_time(walker, trained):
         np.testing.assert_allclose(batch.fitness_std[i], returns.std(), rtol=1e-2, atol=0.05)
 
 
-def test_k_controllers_are_k_independent_runs(walker, trained):
+def test_k_controllers_are_k_independent_runs(walker, bodies, one_update):
     """With K = 2 controllers a body's fitness is the mean of two single-controller runs, each
-    with its share of the body's key, and both controllers come back (for the children)."""
-    _, keys, out1, _, _, _ = trained
+    with its share of the body's key, and both controllers come back (for the children). The
+    two are m*'s controllers of one PPO update that score furthest apart."""
+    _, keys, _, _, _ = bodies
+    out1 = one_update
     star = em.stack([walker.optimum()])
     fitness = np.asarray(out1.fitness[:SEEDS])
     pair = np.array([np.argmin(fitness), np.argmax(fitness)])  # two different gaits of m*

@@ -184,6 +184,7 @@ def test_landscape_enumerates_ranks_and_round_trips(tmp_path):
         ),
     ],
 )
+@pytest.mark.slow  # each script compiles its agents (landscapes: a PPO program): minutes in all
 def test_experiment_scripts_run_at_a_tiny_budget(script, args, output, tmp_path, monkeypatch):
     """`python -m experiments.SCRIPT ...` from the project root, in this process."""
     if "LANDSCAPE" in args:

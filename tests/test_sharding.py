@@ -9,6 +9,7 @@ XLA_FLAGS=--xla_force_host_platform_device_count=4; this process has one CPU dev
 import json
 
 import numpy as np
+import pytest
 from conftest import on_four_devices
 
 FITNESS_ON_FOUR = r"""
@@ -34,6 +35,7 @@ print("RESULT", json.dumps({"four": np.asarray(four.fitness).tolist(),
 """
 
 
+@pytest.mark.slow  # a new Python compiling two float64 PPO programs: minutes on 2 cores
 def test_four_devices_give_one_devices_fitness():
     got = json.loads(on_four_devices(FITNESS_ON_FOUR).stdout.split("RESULT ")[1])
     assert got["devices"] == 4  # the trained controllers really were spread over the devices

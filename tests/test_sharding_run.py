@@ -5,6 +5,7 @@ import json
 import sqlite3
 
 import numpy as np
+import pytest
 from conftest import on_four_devices
 
 from evojax_morph import run
@@ -19,7 +20,8 @@ assert run.main(sys.argv[1:]) == 0  # a run saved on 4 devices, resumed by the c
 """
 
 
-
+# A new Python compiling a whole PPO run on 4 devices, then its resume on one: minutes on 2 cores.
+@pytest.mark.slow
 def test_a_run_on_four_devices_resumes_on_one(tmp_path):
     out = tmp_path / "run"
     cli = [

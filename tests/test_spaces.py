@@ -11,15 +11,17 @@ from evojax_morph.spaces import length_walker as lw
 
 
 def reachable(space, max_depth=10):
-    """Every morphology reachable from m0, by breadth-first search over valid actions."""
+    """Every morphology reachable from m0, by breadth-first search over valid actions (one
+    body and one action at a time, jitted: eagerly, Bad Walker's 150 took half a minute)."""
+    action_mask, mutate = jax.jit(space.action_mask), jax.jit(space.mutate)
     seen = {space.to_json(space.initial()): space.initial()}
     frontier = [space.initial()]
     for _ in range(max_depth):
         nxt = []
         for m in frontier:
-            mask = np.asarray(space.action_mask(m))
+            mask = np.asarray(action_mask(m))
             for node, mutation in zip(*np.nonzero(mask)):
-                child = space.mutate(m, int(node), int(mutation))
+                child = jax.device_get(mutate(m, node, mutation))
                 key = space.to_json(child)
                 if key not in seen:
                     seen[key] = child

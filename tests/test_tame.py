@@ -147,7 +147,7 @@ def test_fitness_is_deterministic_and_batch_independent(trained):
         )
 
 
-def test_cli_runs_with_the_tame_fitness(trained, tmp_path, capsys):
+def test_cli_refuses_the_tame_fitness_without_its_classifier(trained, tmp_path, capsys):
     out, _ = trained
     with pytest.raises(SystemExit):
         run.main(["--fitness", "tame", "--out", str(tmp_path / "none")])
@@ -166,6 +166,11 @@ def test_cli_runs_with_the_tame_fitness(trained, tmp_path, capsys):
             ]
         )
     assert "another space" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # a whole run (random agent) compiling the TAME fitness's programs: a minute
+def test_cli_runs_with_the_tame_fitness(trained, tmp_path):
+    out, _ = trained
     assert (
         run.main(
             [

@@ -149,6 +149,7 @@ def test_warp_flat_batch_agrees_with_jax_per_world(space):
 
 
 @requires_warp
+@pytest.mark.slow  # three PPO programs (JAX, Warp, Warp trained) to compile: minutes on 2 cores
 def test_ppo_fitness_on_warp():
     """The PPO fitness with physics="warp": 3 bodies x 2 controllers x 4 envs in one flat Warp
     batch. Untrained controllers score as on the JAX engine over short episodes (the engines
