@@ -64,9 +64,11 @@ GROUPS = {  # at least the evaluations per run and seeds the issue asks for
        for a in ("a2c", "ddqn", "evolution", "random")},
 }
 UNROLLS = {"fig5": "fig6_h100", "fig7": "fig8"}  # a figure of greedy unrolls: its agents' group
-STAGES = {"fig6_h20": ["fig6_h20"], "fig6_h100": ["fig6_h100"], "fig5": ["fig5"],
-          "fig8": ["fig8"], "fig7": ["fig7"],
-          "compare": [g for g in GROUPS if g.startswith("compare_")]}
+STAGES = {  # a stage runs these groups and unrolls in turn; each group is a stage too
+    "fig6_h20": ["fig6_h20"], "fig6_h100": ["fig6_h100"], "fig5": ["fig5"], "fig8": ["fig8"],
+    "fig7": ["fig7"], "compare": [g for g in GROUPS if g.startswith("compare_")],
+    **{g: [g] for g in GROUPS if g.startswith("compare_")},
+}
 
 
 def toy(g: Group) -> Group:

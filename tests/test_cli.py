@@ -1,5 +1,5 @@
-"""The run command: bad input, resume and the body log (its PPO smoke run is in test_sharding,
-on 4 devices)."""
+"""The run command: bad input, resume and the body log (its PPO smoke run is in
+test_sharding_run.py, on 4 devices, in the slow set)."""
 
 import csv
 import json
