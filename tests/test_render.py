@@ -59,6 +59,7 @@ def test_saved_controllers_round_trip(run_dir):
         controllers.body_dir(out, "step 5")
 
 
+@pytest.mark.slow  # its own PPO program (C = 2 at 320 steps): over 2 minutes cold on 2 cores
 def test_confirmed_best_keeps_its_fresh_controllers(run_dir, tmp_path):
     """The confirm stage on the PPO fitness (one PPO update per controller here): C = 2
     controllers trained afresh on each body of the log; the best body's are saved, best first,
