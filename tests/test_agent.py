@@ -131,6 +131,7 @@ def test_env_reward_is_fitness_change_and_episodes_restart():
     assert (restarted.steps == 0).all() and bool(restarted.morph.active[0, 1])
 
 
+@pytest.mark.slow  # 28 s cold; test_every_agent_shapes_masks_and_one_trace checks masks too
 def test_masked_actions_are_never_chosen():
     _, env, (init, chunk, _) = make("constructor")
     state, _ = chunk(jax.jit(init)(jax.random.PRNGKey(0)), 40)  # epsilon anneals from 1 to 0.6

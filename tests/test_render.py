@@ -92,6 +92,7 @@ def test_confirmed_best_keeps_its_fresh_controllers(run_dir, tmp_path):
         np.testing.assert_array_equal(x, y)
 
 
+@pytest.mark.slow  # its replay program: a minute cold on 2 cores
 def test_replay_is_the_fitness_evaluation_episode(run_dir):
     """The replay of controller k from reset key r returns what the PPO fitness's evaluation
     (`ppo.make_evaluate`, which scores every trained controller) returns for the same key."""

@@ -207,6 +207,7 @@ def test_builder_resumes_and_refuses_other_settings(walker, tmp_path, monkeypatc
     np.testing.assert_allclose(res.fitness, want[:1])
 
 
+@pytest.mark.slow  # 23 s cold; test_confirm runs `run` on a table in the default set
 def test_run_command_with_the_table(walker, tmp_path):
     synthetic(walker, tmp_path / "t.npz")
     out = tmp_path / "run"

@@ -50,6 +50,7 @@ def trained(tmp_path_factory):
     return out, tame.Pretrained.load(out)
 
 
+@pytest.mark.slow  # the trained TAME classifier fixture: about 2 minutes cold on 2 cores
 def test_held_out_bodies_never_enter_training(trained):
     _, pre = trained
     walker = em.make_space("bad_walker")
@@ -121,6 +122,7 @@ def test_no_motor_no_control_term(walker_tame):
     assert 0 <= float(coverage) < 0.05  # and a trunk without feet stays put
 
 
+@pytest.mark.slow  # the trained TAME classifier fixture: about 2 minutes cold on 2 cores
 def test_fitness_is_deterministic_and_batch_independent(trained):
     out, _ = trained
     walker = em.make_space("bad_walker")
@@ -147,6 +149,7 @@ def test_fitness_is_deterministic_and_batch_independent(trained):
         )
 
 
+@pytest.mark.slow  # the trained TAME classifier fixture: about 2 minutes cold on 2 cores
 def test_cli_refuses_the_tame_fitness_without_its_classifier(trained, tmp_path, capsys):
     out, _ = trained
     with pytest.raises(SystemExit):

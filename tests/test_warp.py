@@ -88,6 +88,7 @@ def test_capsule_boxes_match_mujocos(space):
         np.testing.assert_allclose(boxes[space.template.geom(name).id], expected, atol=1e-6)
 
 
+@pytest.mark.slow  # 46 s cold; test_fitness checks the flat world batch in the default set
 def test_flat_jax_batch_equals_nested():
     """One space suffices: the layout of worlds is the same for every space (and each space's
     compile costs 20-30 s of the suite)."""
