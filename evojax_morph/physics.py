@@ -35,6 +35,47 @@ import mujoco
 import numpy as np
 from flax import struct
 
+
+def _mujoco_warp_package() -> str:
+    """With EVOJAX_MORPH_MUJOCO_WARP=package, MJX's Warp implementation runs the mujoco-warp
+    package instead of its vendored copy.
+
+    MJX 3.17 steps `mujoco.mjx.third_party.mujoco_warp`, which lacks `Option.deterministic`; the
+    mujoco-warp package of the same release has it, and the same Model, Data and Option fields
+    but for `Option.deterministic` and three sensor addresses (unused here: no sensors). So its
+    modules are registered under the vendored names before MJX imports them, where the package's
+    version is mujoco's. Not the default: the option did not make the fitness reproducible and
+    cost 12.5x (docs/benchmarks.md, "A reproducible Warp"), and the package runs no faster.
+
+    Returns:
+      "package" or "vendored": the copy MJX's Warp implementation runs.
+    """
+    import importlib
+    import importlib.metadata as metadata
+    import os
+    import pkgutil
+    import sys
+
+    if os.environ.get("EVOJAX_MORPH_MUJOCO_WARP", "vendored") != "package":
+        return "vendored"
+    if "mujoco.mjx" in sys.modules:  # too late: MJX holds the vendored modules already
+        return "vendored"
+    try:
+        if metadata.version("mujoco-warp") != mujoco.__version__:
+            return "vendored"
+        with contextlib.redirect_stdout(io.StringIO()):
+            src = importlib.import_module("mujoco_warp._src")
+            for mod in pkgutil.iter_modules(src.__path__):
+                if not mod.name.endswith("_test"):
+                    importlib.import_module(f"mujoco_warp._src.{mod.name}")
+    except Exception:  # not installed, or no Warp to run it: MJX says why when asked
+        return "vendored"
+    for name in [n for n in sys.modules if n.split(".")[0] == "mujoco_warp"]:
+        sys.modules["mujoco.mjx.third_party." + name] = sys.modules[name]
+    return "package"
+
+
+MUJOCO_WARP = _mujoco_warp_package()  # before mjx imports its Warp implementation
 with contextlib.redirect_stdout(io.StringIO()):  # mjx prints when the optional warp is missing
     from mujoco import mjx
 

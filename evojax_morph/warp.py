@@ -8,6 +8,14 @@ e of body b, and the worlds step under ONE `jax.vmap(mjx.step, (None, 0))`. A vm
 nested around a vmap over envs would be wrong, not slow: Warp sees the B x E worlds flattened
 while the model keeps its (B,) axis, so world `b * E + e` would read body `(b * E + e) % B`.
 
+Not reproducible on a GPU. `set_deterministic(True)` asks for MuJoCo Warp's
+`Option.deterministic` (each world's contacts sorted, constraint rows in a canonical order, sums
+in a fixed order), which only the mujoco-warp package has, not MJX's vendored copy: it needs
+EVOJAX_MORPH_MUJOCO_WARP=package (`physics.MUJOCO_WARP`). Measured on an H100 it cost 12.5x and
+still left 919 of 1,024 fitness values differing between two calls with the same keys
+(docs/benchmarks.md), so nothing asks for it by default. Set it before the process's first Warp
+call.
+
 Float32 only. The derived constants are computed by `specialise` in the JAX impl and copied;
 `dof_M0` and `stat.meaninertia` are not read by Warp. `geom_aabb` (the broadphase's boxes) is
 recomputed from the capsule sizes.
@@ -24,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
-from evojax_morph.physics import SPECIALISED_FIELDS, flat_models, mjx
+from evojax_morph.physics import MUJOCO_WARP, SPECIALISED_FIELDS, flat_models, mjx
 from evojax_morph.spaces import Space
 
 INSTALL_HINT = "pip install 'evojax_morph[warp]'"
@@ -48,6 +56,42 @@ def available() -> tuple[bool, str]:
     if platform not in ("gpu", "cpu"):
         return False, f"MuJoCo Warp runs on a CUDA GPU or the CPU, not on {platform}"
     return True, ""
+
+
+_DETERMINISTIC = [False]  # set_deterministic's setting, applied by put_model
+
+
+def set_deterministic(on: bool) -> bool:
+    """Asks MuJoCo Warp for deterministic contacts, constraint rows and sums (all of
+    `DeterminismType`) in the Warp models this process makes from now on.
+
+    Returns:
+      True if in force: False when `on` and the vendored copy runs (it has no such option).
+    """
+    _DETERMINISTIC[0] = bool(on) and MUJOCO_WARP == "package"
+    return _DETERMINISTIC[0] == bool(on)
+
+
+def deterministic() -> bool:
+    """Whether Warp models made now ask for deterministic execution (`set_deterministic`)."""
+    return _DETERMINISTIC[0]
+
+
+def _apply_determinism() -> None:
+    """Sets `Option.deterministic` on the Option object MJX's Warp calls share: MJX builds the
+    MuJoCo Warp model of every call from its JAX fields into one module-level `_o`, which has
+    no JAX field for this option and so keeps what is set here."""
+    if MUJOCO_WARP != "package":
+        return
+    import importlib
+
+    from mujoco_warp import DeterminismType
+
+    flag = DeterminismType.ALL if _DETERMINISTIC[0] else DeterminismType.NONE
+    for name in ("forward", "smooth", "collision_driver"):
+        module = importlib.import_module(f"mujoco.mjx.warp.{name}")
+        if hasattr(module, "_o"):
+            module._o.deterministic = flag
 
 
 def _require() -> None:
@@ -124,6 +168,7 @@ def world_model(space: Space, models: mjx.Model, envs: int, graph_mode=None) -> 
 def put_model(mj_model: mujoco.MjModel, graph_mode=None) -> mjx.Model:
     """`mj_model` as one Warp-impl model shared by every world (no per-world fields)."""
     _require()
+    _apply_determinism()
     model = mjx.put_model(mj_model, impl="warp", graph_mode=graph_mode)
     # Warp prints a warning for each step whose solver hits its iteration budget: ours is small
     # on purpose (BodyPlan.iterations), so these would flood the output.

@@ -11,10 +11,12 @@ is 4 physics steps of 5 ms. For each batch size B this prints:
                  --single bodies and scaled to B); `batching gain` is its time over the batch's;
                  both null (printed "-") with --single 0, which skips them and their B = 1 compile
   repeat diff    the largest fitness difference between the repeated calls (same program, same
-                 keys): 0 when the engine and XLA are deterministic
+                 keys), and how many of the B bodies differ: 0 when the engine and XLA are
+                 deterministic
 Timings exclude compilation (a warm-up call first) and are medians of --repeats calls.
 --physics names the engine (`evojax_morph.engines`); --deterministic asks XLA for deterministic
-GPU ops first, as the run command does unless --fast-gpu.
+GPU ops first, as the run command does unless --fast-gpu; --warp-deterministic MuJoCo Warp's
+`Option.deterministic`, under EVOJAX_MORPH_MUJOCO_WARP=package (`evojax_morph.physics`).
 
   python -m experiments.bench_fitness --batches 1 16                 # CPU
   python -m experiments.bench_fitness --batches 1 256 1024 4096 --physics warp --deterministic
@@ -32,21 +34,24 @@ import numpy as np
 
 import evojax_morph as em
 from evojax_morph import engines, ppo
+from evojax_morph import warp as ew
+from evojax_morph.physics import MUJOCO_WARP
 
 STANDARD = em.FitnessConfig(ppo=em.standard_ppo(10_000))
 
 
-def timed(fn, repeats: int) -> tuple[float, float]:
+def timed(fn, repeats: int) -> tuple[float, float, int]:
     """(median seconds of `repeats` calls after a warm-up, largest difference between the
-    outputs of all calls)."""
+    outputs of all calls, how many outputs differ in any call)."""
     first = np.asarray(jax.block_until_ready(fn()))  # compile and warm up
-    times, diff = [], 0.0
+    times, diff, differ = [], 0.0, np.zeros(first.shape, bool)
     for _ in range(repeats):
         start = time.perf_counter()
         out = np.asarray(jax.block_until_ready(fn()))
         times.append(time.perf_counter() - start)
         diff = max(diff, float(np.nanmax(np.abs(out - first))) if out.size else 0.0)
-    return float(np.median(times)), diff
+        differ |= out != first
+    return float(np.median(times)), diff, int(differ.sum())
 
 
 def median_time(fn, repeats: int) -> float:
@@ -106,13 +111,18 @@ def main():
     parser.add_argument("--physics", default="jax", choices=engines.list_engines())
     parser.add_argument("--train-steps", type=int, default=10_000)
     parser.add_argument("--controllers", type=int, default=1)
-    parser.add_argument("--deterministic", action="store_true", help="deterministic GPU ops")
+    parser.add_argument("--deterministic", action="store_true", help="XLA's deterministic GPU ops")
+    parser.add_argument("--warp-deterministic", action="store_true",
+                        help="MuJoCo Warp's Option.deterministic (evojax_morph.warp)")
     parser.add_argument("--out", default=None, help="append each row to this JSON-lines file")
     args = parser.parse_args()
     if args.single < 0:
         parser.error("--single must be >= 0")
     if args.deterministic:
         em.deterministic_gpu()
+    if args.warp_deterministic and not ew.set_deterministic(True):
+        parser.error("--warp-deterministic: MJX runs its vendored MuJoCo Warp, which has no "
+                     "such option; set EVOJAX_MORPH_MUJOCO_WARP=package (evojax_morph.physics)")
     jax.config.update("jax_default_matmul_precision", "highest")
 
     space = em.make_space(args.space)
@@ -127,7 +137,7 @@ def main():
         keys = jax.random.split(jax.random.PRNGKey(batch), batch)
         morphs = walk(keys, 3)
         evaluate = lambda: em.evaluate(space, morphs, keys, cfg).fitness  # noqa: B023  (timed now)
-        t_batch, repeat_diff = timed(evaluate, args.repeats)
+        t_batch, repeat_diff, repeat_differing = timed(evaluate, args.repeats)
 
         t_single = one_at_a_time(space, morphs, keys, cfg, min(batch, args.single))
 
@@ -145,6 +155,8 @@ def main():
                 "physics": args.physics,
                 "device": jax.devices()[0].device_kind,
                 "deterministic": args.deterministic,
+                "mujoco_warp": MUJOCO_WARP if args.physics == "warp" else None,
+                "warp_deterministic": args.warp_deterministic,
                 "train_steps": args.train_steps,
                 "controllers": args.controllers,
                 "batch": batch,
@@ -157,6 +169,7 @@ def main():
                 "batch_s": t_batch,
                 "batching_gain": None if t_single is None else t_single / t_batch,
                 "repeat_diff": repeat_diff,
+                "repeat_differing": repeat_differing,  # of `batch` fitness values
                 "date": time.strftime("%Y-%m-%d"),
             }
         )
@@ -175,7 +188,7 @@ def main():
             f"{r['physics_steps_per_s_raw']:>11.3g} {r['ppo_over_physics']:>9.0%} "
             f"{fmt(r['one_at_a_time_s'], '>14.3g')} {r['batch_s']:>8.3g} "
             f"{fmt(r['batching_gain'], '>6.1f')} "
-            f"{r['repeat_diff']:>11.3g}"
+            f"{r['repeat_diff']:>11.3g} {r['repeat_differing']:>4}/{r['batch']}"
         )
 
 

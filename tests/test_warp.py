@@ -5,7 +5,10 @@ through MJX's Warp implementation, at 3 bodies x 2 envs per space.
 """
 
 import dataclasses
+import os
 import re
+import subprocess
+import sys
 
 import chex
 import jax
@@ -182,3 +185,42 @@ def test_ppo_fitness_on_warp():
     changed = jax.tree.map(lambda a, b: not np.array_equal(a, b), out.params.policy,
                            untrained["warp"].params.policy)
     assert all(jax.tree.leaves(changed))  # two updates moved every policy weight
+
+
+DETERMINISM_CHECK = """
+import jax, numpy as np
+import evojax_morph as em
+from evojax_morph import physics, warp as ew
+from mujoco_warp._src import collision_driver
+assert physics.MUJOCO_WARP == "package", physics.MUJOCO_WARP
+sorts, sort = [], collision_driver._sort_contacts
+collision_driver._sort_contacts = lambda m, d: sorts.append(1) or sort(m, d)
+space = em.make_space("bad_walker")
+keys = jax.random.split(jax.random.PRNGKey(0), 2)
+models = jax.vmap(space.mjx_model)(jax.vmap(space.random_morphology, (0, None))(keys, 3))
+ctrl = jax.random.uniform(jax.random.PRNGKey(1), (5, 4, space.template.nu), minval=-1, maxval=1)
+qpos = {}
+for on in (False, True):
+    assert ew.set_deterministic(on) and ew.deterministic() == on
+    model, data = ew.to_warp(space, models, 2)
+    sorts.clear()
+    step = lambda d, c, model=model: (d := ew.step_worlds(model, d, c), d.qpos)
+    qpos[on] = np.asarray(jax.jit(lambda d, c, s=step: jax.lax.scan(s, d, c)[1])(data, ctrl))
+    assert (len(sorts) > 0) == on, (on, len(sorts))
+print("DIFF", np.abs(qpos[True] - qpos[False]).max())
+"""
+
+
+@requires_warp
+def test_set_deterministic_reaches_mujoco_warp():
+    """Under EVOJAX_MORPH_MUJOCO_WARP=package, `set_deterministic(True)` makes the mujoco-warp
+    package behind MJX sort each world's contacts (its CONTACTS determinism), and off it does
+    not; the worlds step alike either way (sorting reorders contacts, not their forces). In a
+    subprocess: the package replaces the vendored copy only before MJX is first imported."""
+    env = dict(os.environ, EVOJAX_MORPH_MUJOCO_WARP="package", JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, "-c", DETERMINISM_CHECK], env=env,
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert float(proc.stdout.split("DIFF")[1]) < WARP_TOL
+    if physics.MUJOCO_WARP == "vendored":  # the default: the option is refused, not ignored
+        assert not ew.set_deterministic(True) and not ew.deterministic()
