@@ -5,7 +5,11 @@ from evojax_morph.bodylog import best_bodies
 from evojax_morph.confirm import Confirmed, confirm
 from evojax_morph.controllers import SavedController
 from evojax_morph.controllers import load as load_controller
-from evojax_morph.determinism import cpu_scheduler_workaround, deterministic_gpu
+from evojax_morph.determinism import (
+    cpu_scheduler_workaround,
+    deterministic_gpu,
+    persistent_cache,
+)
 from evojax_morph.engines import list_engines
 from evojax_morph.fitness import evaluate, init_params
 from evojax_morph.fitnesses import FitnessConfig, FitnessResult, list_fitnesses, standard_ppo
@@ -45,6 +49,7 @@ __all__ = [
     "load_controller",
     "make_space",
     "make_train",
+    "persistent_cache",
     "render_video",
     "replay",
     "stack",

@@ -25,6 +25,7 @@ from jax._src import xla_bridge
 
 FLAG = "--xla_gpu_deterministic_ops=true"
 CPU_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+CACHE = "~/.cache/evojax_morph/jax"  # persistent_cache's default
 
 
 def _ask(flag: str) -> bool:
@@ -56,3 +57,21 @@ def cpu_scheduler_workaround() -> bool:
     A no-op if XLA_FLAGS already sets the scheduler either way, or if a backend has started.
     """
     return _ask(CPU_FLAG)
+
+
+def persistent_cache(path: str | None = None) -> str:
+    """Keeps this process's compiled programs on disk (JAX's persistent compilation cache), so a
+    later process compiling the same program loads it instead: the tests and the run command.
+
+    Args:
+      path: the directory; None for EVOJAX_MORPH_JAX_CACHE, else ~/.cache/evojax_morph/jax.
+
+    Returns:
+      The directory. MuJoCo Warp keeps its compiled kernels apart, in ~/.cache/warp.
+    """
+    import jax
+
+    path = path or os.environ.get("EVOJAX_MORPH_JAX_CACHE") or os.path.expanduser(CACHE)
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    return path

@@ -16,6 +16,7 @@ import csv
 import dataclasses
 import json
 import sys
+import time
 from pathlib import Path
 
 import jax
@@ -117,6 +118,7 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     """Runs `cfg` in the directory `out` (checked writable), from its last checkpoint if
     `resume`, drawing best.gif at the end if `gif`; every process calls it, process 0 writes
     the files and prints."""
+    started = time.perf_counter()
     lead = jax.process_index() == 0  # the process that writes files and prints
     write_config = lambda: (out / "config.json").write_text(  # noqa: E731
         json.dumps(dataclasses.asdict(cfg), indent=1)
@@ -172,11 +174,13 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     writer = SummaryWriter(str(out / "tb")) if lead else None
     bar = tqdm(total=cfg.steps, initial=min(step, cfg.steps), unit="step", dynamic_ncols=True,
                file=sys.stdout, disable=not lead)
-    chunks_done = 0
+    chunks_done, chunk_seconds = 0, []  # (steps, wall clock) of each chunk; the first compiles
     while step < cfg.steps:
         n = min(cfg.chunk, cfg.steps - step)
+        chunk_start = time.perf_counter()
         state, metrics = p.agent.chunk(state, n)
         metrics = to_host(metrics)
+        chunk_seconds.append((n, time.perf_counter() - chunk_start))
         bodies = metrics.pop("bodies")
         for i in range(n):
             if lead:
@@ -235,6 +239,23 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
             record["best_morphology"] = best.to_dict()
             (out / "confirmed.json").write_text(json.dumps(record, indent=1))
         write_results(out, p.space, rows, best, best_fitness, greedy, step, saved, gif, record)
+        clock = timing(time.perf_counter() - started, chunk_seconds)
+        (out / "timing.json").write_text(json.dumps(clock, indent=1))
+        if clock["step_seconds"]:
+            print(f"time: {clock['seconds']:.0f} s, {clock['step_seconds']:.3g} s a step, "
+                  f"{clock['outside_steps_seconds']:.0f} s outside the steps (timing.json; "
+                  "imports not counted)")
+
+
+def timing(total: float, chunks: list[tuple[int, float]]) -> dict:
+    """timing.json: this call's wall clock (a resumed run's since it resumed), split into its
+    steps and the rest (building, compiling, m0, the confirm stage, the end phase), from
+    `execute`'s start (imports excluded). A step is timed by the chunks after the first (whose
+    call compiles); None with one chunk or none."""
+    steps = sum(n for n, _ in chunks)
+    step = float(np.median([s / n for n, s in chunks[1:]])) if chunks[1:] else None
+    return {"seconds": round(total, 1), "steps": steps, "step_seconds": step and round(step, 3),
+            "outside_steps_seconds": step and round(total - step * steps, 1)}
 
 
 def reported_best(out: Path, p: Pipeline, record: dict, top: Confirmed | None, draw: tuple):
@@ -407,7 +428,6 @@ def write_results(
             print(f"  {a:<32} fitness {f:.4g}")
         print(f"\nfinal greedy morphology:\n{space.format(morphs[-1])}")
         written = "trajectory.png " + written
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
     if saved:
         written += " controllers/"
     if saved and gif:
@@ -418,6 +438,7 @@ def write_results(
         written += f" best.gif (drawn by {shown.backend}; the best body walks {walked:.2f} m)"
     elif not saved:
         print("\nno controllers to keep: the fitness trains none (only ppo does), so no best.gif")
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
     print(f"\nwrote {out}/: {written}")
 
 

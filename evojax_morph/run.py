@@ -24,7 +24,7 @@ from pathlib import Path
 import jax
 
 from evojax_morph import agents, driver
-from evojax_morph.determinism import deterministic_gpu
+from evojax_morph.determinism import deterministic_gpu, persistent_cache
 from evojax_morph.engines import AUTO, list_engines, resolve
 from evojax_morph.fitnesses import list_fitnesses
 from evojax_morph.fitnesses.table import default_path as default_table
@@ -344,6 +344,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg, out, resume, gif = parse(argv)
     barrier("parsed")  # every process checked --out before any of them writes there
     jax.config.update("jax_default_matmul_precision", "highest")
+    persistent_cache()  # a second run of the same shapes skips XLA's compiles
     try:
         driver.execute(cfg, out, resume, gif)
     except driver.ResumeError as e:  # bad input, as the parser's errors: code 2 and why

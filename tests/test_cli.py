@@ -106,6 +106,9 @@ def test_resume_matches_an_uninterrupted_run(tmp_path, straight):
     assert run.main(TINY + ["--steps", "9", "--out", str(split), "--resume"]) == 0
     a, b = (json.loads((d / "summary.json").read_text()) for d in (straight, split))
     assert a == b
+    # timing.json: this call's clock; the resumed call ran steps 4-9 in two chunks of 3
+    t = json.loads((split / "timing.json").read_text())
+    assert t["steps"] == 6 and t["seconds"] >= t["outside_steps_seconds"] >= 0
     assert json.loads((split / "config.json").read_text())["physics"] == "jax"  # auto on a CPU
     assert (straight / "metrics.csv").read_text() == (split / "metrics.csv").read_text()
     import orbax.checkpoint as ocp
