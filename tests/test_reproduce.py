@@ -3,10 +3,12 @@ every stage runs, stops at its deadline with its agents' states saved, resumes f
 leaves data files with the settings the figures are drawn from."""
 
 import json
+from pathlib import Path
 
 import pytest
 
-from experiments import reproduce
+from evojax_morph.spaces import make_space
+from experiments import fig7_video, reproduce
 
 
 @pytest.mark.slow
@@ -71,3 +73,14 @@ def test_the_comparison_draws_each_agent_and_each_difference_with_its_interval(t
     d = differences["a2c - random"]
     assert d["difference"] == pytest.approx(2.0) and d["df"] == pytest.approx(3.9385, abs=1e-4)
     assert d["ci95"] == pytest.approx([2 - 6.4516, 2 + 6.4516], abs=1e-3)
+
+
+def test_the_video_rebuilds_each_unroll_body_from_its_recorded_mutations():
+    """fig7_video's body: the recorded unroll's mutations replayed from m0 give, step by step,
+    the bodies the data file names; a record that disagrees is refused."""
+    space = make_space("constructor")
+    unroll = json.loads(Path("docs/figures/reproduce/fig7.json").read_text())["unrolls"][2]
+    assert space.canonical(fig7_video.rebuild(space, unroll)) == unroll["bodies"][-1]["body"]
+    wrong = {**unroll, "actions": ["node 0: add_leg_end"] + unroll["actions"][1:]}
+    with pytest.raises(ValueError, match="not the recorded"):
+        fig7_video.rebuild(space, wrong)
