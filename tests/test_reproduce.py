@@ -3,10 +3,12 @@ every stage runs, stops at its deadline with its agents' states saved, resumes f
 leaves data files with the settings the figures are drawn from."""
 
 import json
+from pathlib import Path
 
 import pytest
 
-from experiments import reproduce
+from evojax_morph.spaces import make_space
+from experiments import fig7_video, reproduce
 
 
 @pytest.mark.slow
@@ -42,3 +44,43 @@ def test_every_stage_resumes_and_leaves_its_data(tmp_path):
     for figure in ("fig5_unroll", "fig7_unroll", "fig8_a2c_constructor", "compare_constructor",
                    "fig6_ddqn_hidden"):
         assert (out / f"{figure}.png").exists()
+
+
+def test_the_comparison_draws_each_agent_and_each_difference_with_its_interval(tmp_path):
+    """The comparison's summary, checked by hand: per agent the mean over seeds of the returned
+    bodies' confirmed fitness with a t-interval; each agent minus evolution and minus random
+    with a Welch t-interval."""
+    confirmed = {"a2c": [19.0, 23.0, 18.0], "ddqn": [16.0, 23.0, 17.0],
+                 "evolution": [6.0, 15.0, 26.0], "random": [21.0, 18.0, 15.0]}
+    for agent, values in confirmed.items():
+        returned = [{"body": "b", "mean": v, "ci95": [v - 1, v + 1], "controllers": 2}
+                    for v in values]
+        (tmp_path / f"compare_{agent}.json").write_text(json.dumps(
+            {"evaluations_per_run": 8, "returned": returned, "returned_draw": [100.0] * 3}))
+    reproduce.draw(tmp_path, tmp_path / "fig")
+    assert (tmp_path / "fig" / "compare_constructor.png").exists()
+    summary = json.loads((tmp_path / "fig" / "compare_constructor.json").read_text())
+    agents, differences = summary["effects"]["agents"], summary["effects"]["differences"]
+    assert set(summary["runs"]) == set(confirmed) == set(agents)
+    # random: mean 18, sd 3 over 3 seeds, t_{.975, 2} = 4.3027: 18 -/+ 4.3027 x 3 / sqrt(3)
+    assert agents["random"]["mean"] == pytest.approx(18.0)
+    assert agents["random"]["ci95"] == pytest.approx([18 - 7.4524, 18 + 7.4524], abs=1e-3)
+    assert agents["evolution"]["returned_draw"] == [100.0] * 3
+    assert set(differences) == {"a2c - evolution", "ddqn - evolution", "random - evolution",
+                                "a2c - random", "ddqn - random"}
+    # a2c - random: 20 - 18; variances 7 and 9, se = sqrt(7/3 + 9/3) = 2.3094; Welch's
+    # df = (16/3)^2 / ((7/3)^2 / 2 + 3^2 / 2) = 3.9385, t_{.975, 3.9385} = 2.7936
+    d = differences["a2c - random"]
+    assert d["difference"] == pytest.approx(2.0) and d["df"] == pytest.approx(3.9385, abs=1e-4)
+    assert d["ci95"] == pytest.approx([2 - 6.4516, 2 + 6.4516], abs=1e-3)
+
+
+def test_the_video_rebuilds_each_unroll_body_from_its_recorded_mutations():
+    """fig7_video's body: the recorded unroll's mutations replayed from m0 give, step by step,
+    the bodies the data file names; a record that disagrees is refused."""
+    space = make_space("constructor")
+    unroll = json.loads(Path("docs/figures/reproduce/fig7.json").read_text())["unrolls"][2]
+    assert space.canonical(fig7_video.rebuild(space, unroll)) == unroll["bodies"][-1]["body"]
+    wrong = {**unroll, "actions": ["node 0: add_leg_end"] + unroll["actions"][1:]}
+    with pytest.raises(ValueError, match="not the recorded"):
+        fig7_video.rebuild(space, wrong)
