@@ -21,11 +21,12 @@ def space(request):
 
 # The longest files first, in this order (pyproject's --no-loadscope-reorder keeps it: xdist
 # would otherwise start the files with the most tests first and the longest last, ending the
-# suite alone). Measured cold, in CPU seconds (docs/benchmarks.md, "The test suite"). In the
-# slow set the two 4-device subprocesses, one test a file, start together on both workers.
-FIRST = ("test_sharding.py", "test_sharding_run.py", "test_physics.py", "test_fitness.py",
-         "test_warp.py", "test_render.py", "test_tame.py", "test_agent.py", "test_search.py",
-         "test_table.py", "test_cli.py")
+# suite alone), as measured cold (docs/benchmarks.md, "The test suite"). In the slow set the
+# two 4-device subprocesses, one test a file, start together on both workers, then the toy
+# reproduce run, the full MuJoCo C equivalence and the experiment smokes (test_search.py).
+FIRST = ("test_sharding.py", "test_sharding_run.py", "test_reproduce.py", "test_physics.py",
+         "test_agent.py", "test_fitness.py", "test_search.py", "test_tame.py", "test_spaces.py",
+         "test_table.py", "test_render.py", "test_warp.py", "test_cli.py", "test_confirm.py")
 
 
 def pytest_collection_modifyitems(config, items):

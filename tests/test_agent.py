@@ -237,6 +237,7 @@ def test_every_agent_shapes_masks_and_one_trace(name):
         assert metrics["reward"].shape == metrics["fitness"].shape == (steps, n)
         assert metrics["best_fitness"].shape == (steps,)
         assert np.isfinite(metrics["reward"]).all(), f"{name} chose a masked action"
+        assert np.isfinite(metrics.get("loss", 0.0)).all()  # the learners' losses
     assert int(state.step) == 2 * steps and state.evo.fitness.shape == (n,)
     assert (state.evo.morph.parent[:, 1:] <= 0).all()  # every limb hangs from the root
     if agent.scores is not None:

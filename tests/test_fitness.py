@@ -1,11 +1,13 @@
 """Batched NGE fitness: learning, inheritance, batching, and the masked PPO pieces."""
 
 import dataclasses
+from typing import NamedTuple
 
 import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from brax.training import distribution
 from brax.training.agents.ppo import losses as ppo_losses
@@ -18,7 +20,11 @@ from evojax_morph.spaces import bad_walker as bw
 # evaluates the controller it is given.
 CFG = em.FitnessConfig(ppo=em.standard_ppo(40_000))
 EVAL_ONLY = em.FitnessConfig(ppo=dataclasses.replace(CFG.ppo, train_steps=0))
-BRIEF = em.FitnessConfig(ppo=dataclasses.replace(CFG.ppo, train_steps=CFG.ppo.num_envs * CFG.ppo.unroll_length))
+# The default set's checks of batching, the one-world path and K controllers: untrained
+# controllers, K = 2 a body, over 1 s episodes (the same programs as at 5 s, a fifth of the
+# stepping). Fresh controllers of m* score from -6 to 10 there, so mix-ups show.
+CHECK = em.FitnessConfig(task=em.TaskConfig(episode_length=50),
+                         ppo=dataclasses.replace(EVAL_ONLY.ppo, controllers=2))
 # Seeds of every learning statistic below: one PPO run is a coin with a bias (a gait is found or
 # not), so the tests assert medians over seeds, with margins measured over 20 other seeds by
 # `python -m experiments.learning_margins --seeds 20` (2 CPU cores, jax 0.10.2).
@@ -69,11 +75,28 @@ def trained(walker, bodies):
     return gen1, keys, train_first(walker, bodies, CFG), fresh, child, evaluate
 
 
+class Checked(NamedTuple):
+    """SEEDS bodies scored at CHECK in one batch, K = 2 fresh controllers each."""
+
+    morphs: em.Morphology  # (SEEDS, ...): SEEDS / 2 m*, the motorless one, SEEDS / 2 - 1 children
+    keys: jax.Array  # (SEEDS,) one key a body
+    params: ppo.Params  # (SEEDS, 2, ...) `gen1`'s 2 x SEEDS fresh controllers, in pairs
+    result: em.FitnessResult  # (SEEDS,) em.evaluate's
+
+
+MOTORLESS = SEEDS // 2  # the motorless body's place in `checked`
+
+
 @pytest.fixture(scope="module")
-def one_update(walker, bodies):
-    """The same SEEDS + 2 bodies trained one PPO update (BRIEF): what the tests that need
-    trained controllers, but not a gait, train (a fraction of the learning budget's run)."""
-    return train_first(walker, bodies, BRIEF)
+def checked(walker, bodies):
+    """Half of `gen1`'s bodies with all its fresh controllers, two a body, in one `em.evaluate`
+    at CHECK (one compiled program for the three tests below)."""
+    gen1, keys, fresh, _, _ = bodies
+    rows = np.r_[: SEEDS // 2, SEEDS : SEEDS + SEEDS // 2]
+    morphs = jax.tree.map(lambda x: x[rows], gen1)
+    params = jax.tree.map(lambda x: x.reshape((SEEDS, 2) + x.shape[1:]), fresh)
+    return Checked(morphs, keys[:SEEDS], params,
+                   em.evaluate(walker, morphs, keys[:SEEDS], CHECK, params))
 
 
 def zero_controller(params):
@@ -93,10 +116,13 @@ def test_m_star_learns_to_walk(walker, trained):
     assert np.all(np.isfinite(np.asarray(out1.fitness))) and not np.asarray(out1.diverged).any()
 
 
-def test_no_motor_no_fitness(one_update):
-    """A trunk alone cannot move itself, trained or not (one update: a reward that paid a body
-    without motors would show already; the learning budget's run is `trained`)."""
-    assert abs(float(one_update.fitness[SEEDS])) < 1.0
+def test_no_motor_no_fitness(checked):
+    """A trunk alone cannot move itself: with no motor its controller acts on nothing, so its
+    fitness is the same trained or not, and a reward that paid a body without motors shows
+    with fresh controllers (m* in the same batch: -3 to 8)."""
+    fitness = np.asarray(checked.result.fitness)
+    assert abs(fitness[MOTORLESS]) < 1.0
+    assert np.ptp(fitness[:MOTORLESS]) > 2.0  # m*, with motors, moves
 
 
 @pytest.mark.learning
@@ -121,8 +147,12 @@ def test_inherited_controller_hands_over_a_gait(trained):
     assert np.median(inherited - scratch) > 5, (inherited, scratch)
 
 
-def test_batch_equals_one_at_a_time(walker, bodies):
-    """Each body of a batch gets what it would get alone with the same key and controller.
+def test_batch_equals_one_at_a_time(walker, checked):
+    """Each body of a batch gets what it would get alone with the same key and controllers, and
+    with K = 2 controllers its fitness is the mean of two single-controller runs, each with its
+    share of the body's key: the fitness steps every world of every controller of every body
+    as one flat batch, and scores as the replays of one controller on its body alone do
+    (`em.replay`: one body, one controller, one world at a time), equal to rounding.
 
     Compared on evaluation of untrained controllers (physics, task and policy under vmap).
     Training and trained gaits amplify float rounding too much to compare: Adam's first steps
@@ -130,55 +160,32 @@ def test_batch_equals_one_at_a_time(walker, bodies):
     flips of near-zero gradients under a different reduction order become visible, and a
     walking gait can turn a 1e-7 difference into a fall.
     """
-    gen1, keys, fresh, _, _ = bodies
-    batch = em.evaluate(walker, gen1, keys, EVAL_ONLY, fresh)
-    for i in (0, SEEDS, 2 * SEEDS - 1):
-        pick = lambda tree: jax.tree.map(lambda x: x[i : i + 1], tree)  # noqa: B023
-        one = em.evaluate(walker, pick(gen1), keys[i : i + 1], EVAL_ONLY, init_params=pick(fresh))
-        np.testing.assert_allclose(one.fitness[0], batch.fitness[i], rtol=1e-2, atol=0.05)
-        np.testing.assert_allclose(one.fitness_std[0], batch.fitness_std[i], rtol=1e-2, atol=0.05)
-    assert len(set(np.round(np.asarray(batch.fitness), 3))) > 2  # different bodies, different results
+    result = checked.result
+
+    def alone(b, c, key):  # body b's controller c on its own, with its share of b's key
+        pick = lambda tree: jax.tree.map(lambda x: x[b], tree)  # noqa: E731
+        saved = em.SavedController(walker, CHECK, 0, pick(checked.morphs), pick(checked.params),
+                                   0.0, f"body {b}")
+        eval_key = jax.random.split(key)[0]  # what train keeps for the evaluation
+        return np.mean([em.replay(saved, k, controller=c).episode_return
+                        for k in jax.random.split(eval_key, CHECK.ppo.eval_episodes)])
+
+    singles = np.array([[alone(b, c, key) for c, key in enumerate(jax.random.split(k, 2))]
+                        for b, k in enumerate(checked.keys)])  # (SEEDS, 2)
+    # Measured on this CPU: the two paths differ by at most 1.2e-4.
+    np.testing.assert_allclose(result.fitness, singles.mean(1), rtol=1e-3, atol=2e-3)
+    np.testing.assert_allclose(result.fitness_std, singles.std(1), rtol=1e-3, atol=2e-3)
+    assert np.abs(np.diff(singles[:MOTORLESS])).max() > 1.0  # m*'s pairs differ: a mix-up shows
+    assert len(set(np.round(np.asarray(result.fitness), 3))) > 2  # different bodies, different results
 
 
-def test_flat_world_batch_equals_one_world_at_a_time(walker, bodies):
-    """The fitness steps every world of every body as one flat batch; it scores a controller as
-    the path of one body and one world at a time does (`ppo.make_evaluate`, which replays use):
-    same keys, untrained controllers, equal to rounding (tolerance as in the test above)."""
-    gen1, keys, fresh, _, _ = bodies
-    batch = em.evaluate(walker, gen1, keys, EVAL_ONLY, fresh)  # the program of the test above
-    one = jax.jit(ppo.make_evaluate(walker, EVAL_ONLY.task, EVAL_ONLY.ppo))
-    for i in (0, SEEDS, 2 * SEEDS - 1):
-        pick = lambda tree: jax.tree.map(lambda x: x[i], tree)  # noqa: B023
-        eval_key = jax.random.split(keys[i])[0]  # what train keeps for the evaluation
-        returns, _ = one(eval_key, walker.mjx_model(pick(gen1)), pick(fresh))
-        np.testing.assert_allclose(batch.fitness[i], returns.mean(), rtol=1e-2, atol=0.05)
-        np.testing.assert_allclose(batch.fitness_std[i], returns.std(), rtol=1e-2, atol=0.05)
-
-
-def test_k_controllers_are_k_independent_runs(walker, bodies, one_update):
-    """With K = 2 controllers a body's fitness is the mean of two single-controller runs, each
-    with its share of the body's key, and both controllers come back (for the children). The
-    two are m*'s controllers of one PPO update that score furthest apart."""
-    _, keys, _, _, _ = bodies
-    out1 = one_update
-    star = em.stack([walker.optimum()])
-    fitness = np.asarray(out1.fitness[:SEEDS])
-    pair = np.array([np.argmin(fitness), np.argmax(fitness)])  # two different gaits of m*
-    two = jax.tree.map(lambda x: x[None, pair], out1.params)  # (1 body, 2 controllers, ...)
-    k2 = em.FitnessConfig(ppo=dataclasses.replace(EVAL_ONLY.ppo, controllers=2))
-    both = em.evaluate(walker, star, keys[:1], k2, init_params=two)
-
-    def alone(i, key):
-        params = jax.tree.map(lambda x: x[:, i], two)
-        return em.evaluate(walker, star, key[None], EVAL_ONLY, init_params=params)
-
-    singles = [alone(i, k) for i, k in enumerate(jax.random.split(keys[0], 2))]
-    f = np.array([float(r.fitness[0]) for r in singles])
-    assert abs(f[0] - f[1]) > 1.0  # a mix-up of the two would show
-    np.testing.assert_allclose(both.fitness[0], f.mean(), rtol=1e-4, atol=1e-3)
-    np.testing.assert_allclose(both.fitness_std[0], f.std(), rtol=1e-3, atol=1e-3)
-    chex.assert_trees_all_equal_shapes(both.params, two)
-    assert both.env_steps == 2 * singles[0].env_steps
+def test_k_controllers_come_back(walker, checked):
+    """Both controllers of every body come back (for the children), unchanged by an evaluation,
+    and a body's env steps are K single runs'."""
+    result = checked.result
+    chex.assert_trees_all_equal(result.params, checked.params)
+    assert result.env_steps == 2 * ppo.env_steps_per_morphology(CHECK.task, EVAL_ONLY.ppo)
+    assert not np.asarray(result.diverged).any()
 
 
 def test_evaluate_api(walker):
@@ -219,6 +226,55 @@ def test_masked_log_prob_matches_a_loop():
     other = raw.copy()
     other[:, ~mask] += 5.0
     np.testing.assert_array_equal(got, ppo.masked_log_prob(dist, jnp.asarray(logits), jnp.asarray(other), jnp.asarray(mask)))
+
+
+def test_one_update_moves_every_layer_but_a_masked_motors_outputs():
+    """One PPO update (`ppo.make_learn`, 2 epochs x 2 minibatches) from a random trajectory of
+    the current policy: every layer of the policy and value networks moves and the observation
+    statistics too, all finite; the policy's outputs of a masked motor (its action's mean and
+    scale) keep their weights to the bit: its log-probability and entropy are masked out.
+    (The whole training program, collection included, is test_render's, in the slow set.)"""
+    space = em.make_space("bad_walker")
+    cfg = dataclasses.replace(CFG.ppo, num_envs=4, unroll_length=8, num_minibatches=2,
+                              update_epochs=2)
+    env = em.Locomotion(space, CFG.task)
+    networks = ppo._networks(env, cfg)
+    params = jax.jit(ppo.make_init(env, networks, cfg))(jax.random.PRNGKey(0))
+    optimizer = optax.adam(cfg.learning_rate)
+    learn = jax.jit(ppo.make_learn(networks, optimizer, cfg))
+    a = env.action_size
+    mask = jnp.arange(a) != 1  # motor 1 masked
+    k_obs, k_act, k_rew = jax.random.split(jax.random.PRNGKey(1), 3)
+    shape = (cfg.unroll_length, cfg.num_envs)
+    obs = jax.random.normal(k_obs, shape + (env.obs_size,))
+    dist = networks.parametric_action_distribution
+
+    @jax.jit
+    def trajectory(params):
+        logits = networks.policy_network.apply(params.normalizer, params.policy, obs)
+        raw = dist.sample_no_postprocessing(logits, k_act)
+        zeros = jnp.zeros(shape)
+        return ppo.Transition(obs, raw, ppo.masked_log_prob(dist, logits, raw, mask),
+                              jax.random.normal(k_rew, shape), zeros, zeros, zeros.astype(bool))
+
+    traj = trajectory(params)
+    net = {"policy": params.policy, "value": params.value}
+    normalizer, new, _, _, entropy = learn(params.normalizer, net, optimizer.init(net), traj,
+                                           obs[-1], mask, jax.random.PRNGKey(2))
+    changed = jax.tree.map(lambda x, y: bool((x != y).any()), net, new)
+    assert all(jax.tree.leaves(changed)), changed
+    assert all(np.isfinite(x).all() for x in jax.tree.leaves(new)) and np.isfinite(entropy)
+    assert (normalizer.mean != params.normalizer.mean).all()
+
+    def output_layer(policy):  # the last layer: a mean and a scale a motor
+        (layer,) = [v for v in policy["params"].values() if v["bias"].shape == (2 * a,)]
+        return layer
+
+    before, after = output_layer(net["policy"]), output_layer(new["policy"])
+    for col in (1, a + 1):  # motor 1's mean and scale
+        np.testing.assert_array_equal(after["kernel"][:, col], before["kernel"][:, col])
+        np.testing.assert_array_equal(after["bias"][col], before["bias"][col])
+    assert (after["kernel"][:, 0] != before["kernel"][:, 0]).any()  # an active motor's move
 
 
 def test_gae_with_termination_and_truncation_matches_a_loop():

@@ -1,5 +1,7 @@
 """The padded MJX template against MuJoCo C on the unpadded export: physics and constants."""
 
+from typing import NamedTuple
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -45,7 +47,6 @@ def joint_names(ref):
     return [ref.joint(j).name for j in range(ref.njnt)]
 
 
-@jax.jit
 def rollout(models, ctrls):
     """(B, T, nq) qpos and qvel of B specialised models driven by (B, T, nu) controls."""
 
@@ -59,6 +60,33 @@ def rollout(models, ctrls):
     return jax.vmap(one)(models, ctrls)
 
 
+def converged(models):
+    """The models with the solver run to convergence (SOLVER), as the MuJoCo C references."""
+    return models.replace(opt=models.opt.replace(
+        iterations=SOLVER["iterations"], ls_iterations=SOLVER["ls_iterations"],
+        tolerance=jnp.full_like(models.opt.tolerance, SOLVER["tolerance"])))
+
+
+def specialise_and_step(space, morphs, ctrls, batches):
+    """In float64, `morphs` specialised and stepped by `ctrls` (B, T, nu) in `batches` equal
+    calls of one jitted function, traced once however the bodies differ (the sample's three
+    calls: walks of one length each). Returns the batched models and qpos, qvel (B, T, nq|nv)."""
+    chex.clear_trace_counter()
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def run(morphs, ctrls):
+        models = jax.vmap(space.mjx_model)(morphs)
+        return models, rollout(converged(models), ctrls)
+
+    size, rest = divmod(len(morphs), batches)
+    assert not rest, (len(morphs), batches)
+    parts = [run(em.stack(morphs[b * size : (b + 1) * size]), ctrls[b * size : (b + 1) * size])
+             for b in range(batches)]
+    models, (qpos, qvel) = jax.device_get(jax.tree.map(lambda *x: jnp.concatenate(x), *parts))
+    return models, qpos, qvel
+
+
 def c_rollout(ref, ctrl):
     data = mujoco.MjData(ref)
     out = np.zeros((len(ctrl), ref.nq))
@@ -69,6 +97,39 @@ def c_rollout(ref, ctrl):
     return out
 
 
+class Stepped(NamedTuple):
+    """Bodies specialised and stepped in float64 (`stepped`), and their MuJoCo C exports."""
+
+    morphs: list  # B bodies of assorted sizes
+    ctrls: np.ndarray  # (B, T, nu) random controls in [-1, 1]
+    models: mjx.Model  # the B specialised models, batched, float64
+    qpos: np.ndarray  # (B, T, nq) after each step, converged solver
+    qvel: np.ndarray  # (B, T, nv)
+    refs: list  # B unpadded MuJoCo C models (float64 MJCF export), solver as SOLVER
+
+
+def stepped(space, num_morphs, steps, batches=1) -> Stepped:
+    """`num_morphs` random bodies of `space` (`sample_morphologies`) driven by random controls
+    for `steps` steps (`specialise_and_step`), and their exports."""
+    with jax.enable_x64(True):
+        morphs = sample_morphologies(space, num_morphs)
+        ctrls = np.random.default_rng(0).uniform(-1, 1, (num_morphs, steps, space.template.nu))
+        models, qpos, qvel = specialise_and_step(space, morphs, jnp.asarray(ctrls), batches)
+        # Exported in float64 too: a float32 layout would move the body by ~1e-8 m.
+        refs = [mujoco.MjModel.from_xml_string(space.to_mjcf(m)) for m in morphs]
+    for ref in refs:
+        ref.opt.iterations, ref.opt.ls_iterations = SOLVER["iterations"], SOLVER["ls_iterations"]
+        ref.opt.tolerance = SOLVER["tolerance"]
+    return Stepped(morphs, ctrls, models, qpos, qvel, refs)
+
+
+@pytest.fixture(scope="module")
+def sample(space):
+    """The default set's sample: SAMPLE_MORPHS bodies x SAMPLE_STEPS, in 3 calls of one trace
+    (4 walks of one length each), which the tests below share."""
+    return stepped(space, SAMPLE_MORPHS, SAMPLE_STEPS, batches=3)
+
+
 @pytest.mark.parametrize(
     "num_morphs, steps",
     [
@@ -76,39 +137,31 @@ def c_rollout(ref, ctrl):
         pytest.param(NUM_MORPHS, STEPS, id="full", marks=pytest.mark.slow),
     ],
 )
-def test_padded_template_steps_like_mujoco_c(space, num_morphs, steps):
+def test_padded_template_steps_like_mujoco_c(space, num_morphs, steps, request):
     """Random controls matched by actuator name, float64: same root and joints. The sample
     (12 bodies of every size x 100 steps: contacts, falls and every joint kind) catches a wrong
-    field or a padded slot that moves; the full 50 x 300 is the documented tolerance's test."""
-    with jax.enable_x64(True):
-        morphs = sample_morphologies(space, num_morphs)
-        models = jax.jit(jax.vmap(space.mjx_model))(em.stack(morphs))
-        models = models.replace(opt=models.opt.replace(
-            iterations=SOLVER["iterations"], ls_iterations=SOLVER["ls_iterations"],
-            tolerance=jnp.full_like(models.opt.tolerance, SOLVER["tolerance"])))
-        tmpl = space.template
-        ctrls = np.random.default_rng(0).uniform(-1, 1, (num_morphs, steps, tmpl.nu))
-        qpos, qvel = jax.device_get(rollout(models, jnp.asarray(ctrls)))
-        # Exported in float64 too: a float32 layout would move the body by ~1e-8 m.
-        refs = [mujoco.MjModel.from_xml_string(space.to_mjcf(m)) for m in morphs]
-    for ref in refs:
-        ref.opt.iterations, ref.opt.ls_iterations = SOLVER["iterations"], SOLVER["ls_iterations"]
-        ref.opt.tolerance = SOLVER["tolerance"]
-
+    field or a padded slot that moves; the full 50 x 300 is the documented tolerance's test
+    (and checks the derived constants of its 50 bodies too)."""
+    if num_morphs == SAMPLE_MORPHS:
+        run = request.getfixturevalue("sample")
+    else:
+        run = stepped(space, num_morphs, steps)
+        check_derived_constants(space, run)
+    tmpl = space.template
     worst = 0.0
-    for i, ref in enumerate(refs):
+    for i, ref in enumerate(run.refs):
         names = joint_names(ref)
         acts = [tmpl.actuator(ref.actuator(a).name).id for a in range(ref.nu)]
-        expected = c_rollout(ref, ctrls[i][:, acts])
-        got = qpos[i][:, qpos_addresses(tmpl, names)]
+        expected = c_rollout(ref, run.ctrls[i][:, acts])
+        got = run.qpos[i][:, qpos_addresses(tmpl, names)]
         worst = max(worst, np.abs(got - expected[:, qpos_addresses(ref, names)]).max())
 
         # Padded joints stay exactly at rest.
         padded = np.setdiff1d(np.arange(tmpl.nq), qpos_addresses(tmpl, names))
-        assert np.all(qpos[i][:, padded] == 0) and np.all(qvel[i][:, padded] == 0)
+        assert np.all(run.qpos[i][:, padded] == 0) and np.all(run.qvel[i][:, padded] == 0)
     assert worst < QPOS_ATOL, worst
     # The bodies really moved: the test is not comparing two resting models.
-    assert np.abs(qpos[:, -1, :3]).max() > 0.1
+    assert np.abs(run.qpos[:, -1, :3]).max() > 0.1
 
 
 def inertia_tensor(quat, principal):
@@ -118,12 +171,14 @@ def inertia_tensor(quat, principal):
     return rot @ np.diag(principal) @ rot.T
 
 
-def test_derived_constants_match_the_compiler(space):
-    """Masses, inertias, invweight0, acc0 and meaninertia as MuJoCo computes them unpadded."""
-    with jax.enable_x64(True):
-        morphs = sample_morphologies(space, 20, seed=1)
-        models = jax.device_get(jax.jit(jax.vmap(space.mjx_model))(em.stack(morphs)))
-        refs = [mujoco.MjModel.from_xml_string(space.to_mjcf(m)) for m in morphs]
+def test_derived_constants_match_the_compiler(space, sample):
+    """Masses, inertias, invweight0, acc0 and meaninertia as MuJoCo computes them unpadded, on
+    the sample's bodies (the slow set's full test checks its 50 too)."""
+    check_derived_constants(space, sample)
+
+
+def check_derived_constants(space, run: Stepped):
+    models, refs = run.models, run.refs
     tmpl = space.template
     for i, ref in enumerate(refs):
         got = jax.tree.map(lambda x: x[i], models)
@@ -189,23 +244,6 @@ def test_inactive_geoms_never_touch():
     names = joint_names(ref)
     got = data.qacc[[space.template.jnt_dofadr[space.template.joint(n).id] for n in names]]
     np.testing.assert_allclose(got, ref_data.qacc[[ref.jnt_dofadr[ref.joint(n).id] for n in names]], atol=1e-8)
-
-
-def test_specialise_and_step_trace_once(space):
-    """Three batches of different bodies go through one trace of specialise + step."""
-    chex.clear_trace_counter()
-
-    @jax.jit
-    @chex.assert_max_traces(n=1)
-    def specialise_and_step(morphs):
-        models = jax.vmap(space.mjx_model)(morphs)
-        data = jax.vmap(mjx.make_data)(models)
-        return jax.vmap(mjx.step)(models, data).qpos
-
-    for seed in range(3):
-        keys = jax.random.split(jax.random.PRNGKey(seed), 4)
-        morphs = jax.vmap(space.random_morphology, (0, None))(keys, 2 + seed)
-        assert np.isfinite(np.asarray(specialise_and_step(morphs))).all()
 
 
 def test_to_mjcf_rejects_batches():

@@ -1,6 +1,7 @@
 """Saved controllers, their replay and its video (matplotlib fallback), the render command, and
-the console scripts. The PPO trainings here are 1-update `em.evaluate`s of two bodies (and
-`em.confirm`'s of two bodies x two controllers, in the confirm stage's test)."""
+the console scripts. The PPO trainings here (slow set) are 1-update `em.evaluate`s of two bodies
+x two controllers, and `em.confirm`'s of two bodies x two controllers in the confirm stage's
+test; the default set's controllers are fresh ones."""
 
 import dataclasses
 import os
@@ -10,6 +11,7 @@ import tomllib
 from importlib import import_module
 from pathlib import Path
 
+import chex
 import jax
 import numpy as np
 import pytest
@@ -25,19 +27,43 @@ TINY_VIDEO = dict(backend="matplotlib", width=64, height=48, stride=50)
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
-    """A run directory as the driver leaves it, with K = 2 controllers per body trained 1 PPO
-    update: best = m*, greedy trajectory m0 -> m*."""
+    """A run directory as the driver leaves it for the PPO fitness, K = 2 controllers per body:
+    best = m*, greedy trajectory m0 -> m*. The controllers are fresh ones and the fitness
+    values made up: what the tests read of them is their shapes and values, not a gait (the
+    trained run below is the slow set's). Episodes of 1 s (the run's default is 5 s): the same
+    replay program, a fifth of the steps."""
     p = build(RunConfig(fitness="ppo", train_steps=320, controllers=2))
+    p = p._replace(fitness=dataclasses.replace(p.fitness, task=em.TaskConfig(episode_length=50)))
     space = p.space
-    morphs = em.stack([space.initial(), space.optimum()])
-    res = jax.device_get(em.evaluate(space, morphs, jax.random.PRNGKey(0), p.fitness))
-    params = [jax.tree.map(lambda x, i=i: x[i], res.params) for i in range(2)]
-    fitness = [float(f) for f in res.fitness]
+    fresh = jax.device_get(em.init_params(space, jax.random.split(jax.random.PRNGKey(0), 2),
+                                          p.fitness))
+    params = [jax.tree.map(lambda x, i=i: x[i], fresh) for i in range(2)]
+    fitness = [12.5, 40.25]
     out = tmp_path_factory.mktemp("run")
     greedy = Greedy([space.initial(), space.optimum()], fitness, ["..."], params)
     saved = driver.save_controllers(out, p, 7, space.optimum(), fitness[1], params[1], greedy)
     assert saved == ["best", "step0", "step1"]
     return out, p, params, fitness
+
+
+@pytest.mark.slow  # the PPO training program: 90 s cold on 2 cores (test_fitness checks an update)
+def test_one_ppo_update_moves_every_controller(run_dir):
+    """The PPO fitness trains: one update (16 envs x 20 steps) of each of the 2 x 2 controllers
+    of `run_dir` moves a weight of every layer of its policy and value networks, and its
+    observation statistics; the fitness is finite and no world diverged."""
+    _, p, params, _ = run_dir
+    space = p.space
+    fresh = jax.tree.map(lambda *x: np.stack(x), *params)
+    res = jax.device_get(em.evaluate(space, em.stack([space.initial(), space.optimum()]),
+                                     jax.random.PRNGKey(1), p.fitness, init_params=fresh))
+    moved = lambda a, b: (a != b).reshape(4, -1).any(-1).all()  # each of the 2 x 2 controllers
+    for name in ("policy", "value"):
+        chex.assert_trees_all_equal_shapes(getattr(fresh, name), getattr(res.params, name))
+        assert all(jax.tree.leaves(jax.tree.map(moved, getattr(fresh, name),
+                                                getattr(res.params, name)))), name
+    for name in ("mean", "summed_variance"):
+        assert moved(getattr(fresh.normalizer, name), getattr(res.params.normalizer, name))
+    assert np.isfinite(res.fitness).all() and not res.diverged.any()
 
 
 def test_saved_controllers_round_trip(run_dir):

@@ -158,13 +158,16 @@ def test_one_trace_across_bodies(walker, tmp_path):
 
 def test_an_agent_runs_on_the_table(walker, tmp_path):
     """The jitted agent loop: every reward is f(child) - f(parent), each a mean of 2 draws from
-    the child's own row (the parent's fitness as drawn at its own evaluation)."""
+    the child's own row (the parent's fitness as drawn at its own evaluation). The random
+    agent: a table fitness program is compiled afresh every run (its host callback keeps it
+    out of the compilation cache), and a learning agent's would cost 20 s more; every agent's
+    own loop is test_agent's."""
     from evojax_morph.pipeline import RunConfig, build
 
     space, _, names = walker
     table = synthetic(walker, tmp_path / "t.npz")
     p = build(RunConfig(space="bad_walker", fitness="table", table=str(tmp_path / "t.npz"),
-                        agent="qrdqn", num_envs=4, horizon=3, controllers=2, learning_starts=4))
+                        agent="random", num_envs=4, horizon=3, controllers=2))
     seeds = jax.vmap(jax.random.PRNGKey)(jnp.arange(2))  # vmapped over seeds, as experiments do
     states = jax.jit(jax.vmap(p.agent.init))(seeds)
     _, metrics = jax.jit(jax.vmap(lambda s: p.agent.chunk(s, 5)))(states)
@@ -175,7 +178,7 @@ def test_an_agent_runs_on_the_table(walker, tmp_path):
     np.testing.assert_array_equal(np.floor(fitness / 1000), rows)
     assert np.isin(np.round((fitness - 1000 * rows) * 2),
                    [2**a + 2**b for a in range(SEEDS) for b in range(a)]).all()
-    assert table.seeds == SEEDS and np.isfinite(np.asarray(metrics["loss"])).all()
+    assert table.seeds == SEEDS
 
 
 def test_builder_resumes_and_refuses_other_settings(walker, tmp_path, monkeypatch, capsys):

@@ -5,6 +5,7 @@ through MJX's Warp implementation, at 3 bodies x 2 envs per space.
 """
 
 import dataclasses
+import functools
 import os
 import re
 import subprocess
@@ -33,11 +34,13 @@ requires_warp = pytest.mark.skipif(not WARP_OK, reason=f"MuJoCo Warp: {WARP_REAS
 WARP_TOL = 3e-6
 
 
+@functools.cache  # the tests of a space share its bodies and their one specialisation program
 def _morphs(space):
     keys = jax.random.split(jax.random.PRNGKey(0), BODIES)
     return jax.vmap(space.random_morphology, (0, None))(keys, space.default_horizon)
 
 
+@functools.cache
 def _bodies(space):
     models = jax.jit(jax.vmap(space.mjx_model))(_morphs(space))
     # Random walks may meet: make sure the bodies differ, or the isolation check proves nothing.
@@ -83,7 +86,7 @@ def test_capsule_boxes_match_mujocos(space):
     """The broadphase boxes `to_warp` writes are those MuJoCo compiles for the unpadded body."""
     m = jax.tree.map(lambda x: x[0], _morphs(space))
     export = mujoco.MjModel.from_xml_string(space.to_mjcf(m))
-    sizes = jax.jit(space.mjx_model)(m).geom_size
+    sizes = _bodies(space).geom_size[0]
     boxes = np.asarray(ew._capsule_aabb(space.template, sizes))
     for g in range(export.ngeom):
         name = export.geom(g).name
