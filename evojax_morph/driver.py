@@ -119,6 +119,13 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     `resume`, drawing best.gif at the end if `gif`; every process calls it, process 0 writes
     the files and prints."""
     started = time.perf_counter()
+    phases, last = {}, [started]  # wall clock of each phase, for timing.json
+
+    def phase(name: str) -> None:
+        now = time.perf_counter()
+        phases[name] = round(now - last[0], 1)
+        last[0] = now
+
     lead = jax.process_index() == 0  # the process that writes files and prints
     write_config = lambda: (out / "config.json").write_text(  # noqa: E731
         json.dumps(dataclasses.asdict(cfg), indent=1)
@@ -167,6 +174,7 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
             log_bodies.truncate(-1)
             log_bodies.add(0, first.morph, first.fitness, first.fitness_std, first.diverged)
             log_bodies.commit()
+    phase("build_and_m0")
 
     from tensorboardX import SummaryWriter
     from tqdm import tqdm
@@ -217,6 +225,7 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
             manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state)))
     bar.close()
     manager.wait_until_finished()
+    phase("steps")
 
     # RESULTS
     best, best_fitness, best_params = to_host(
@@ -229,7 +238,9 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
         writer.close()
         log_bodies.close()
     barrier("body log written")  # every process reads it in the confirm stage
+    phase("greedy_rollout")
     record, top = confirm_stage(out, p, cfg, step, log)
+    phase("confirm")
     best, best_fitness, best_params, best_cfg = reported_best(
         out, p, record, top, (best, float(best_fitness), best_params)
     )
@@ -239,7 +250,8 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
             record["best_morphology"] = best.to_dict()
             (out / "confirmed.json").write_text(json.dumps(record, indent=1))
         write_results(out, p.space, rows, best, best_fitness, greedy, step, saved, gif, record)
-        clock = timing(time.perf_counter() - started, chunk_seconds)
+        phase("results")
+        clock = timing(time.perf_counter() - started, chunk_seconds) | {"phases": phases}
         (out / "timing.json").write_text(json.dumps(clock, indent=1))
         if clock["step_seconds"]:
             print(f"time: {clock['seconds']:.0f} s, {clock['step_seconds']:.3g} s a step, "
@@ -250,7 +262,9 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
 def timing(total: float, chunks: list[tuple[int, float]]) -> dict:
     """timing.json: this call's wall clock (a resumed run's since it resumed), split into its
     steps and the rest (building, compiling, m0, the confirm stage, the end phase), from
-    `execute`'s start (imports excluded). A step is timed by the chunks after the first (whose
+    `execute`'s start (imports excluded); `execute` adds the seconds of its phases (building and
+    m0's evaluation, the steps, the greedy rollout, the confirm stage, the results and best.gif).
+    A step is timed by the chunks after the first (whose
     call compiles); None with one chunk or none."""
     steps = sum(n for n, _ in chunks)
     step = float(np.median([s / n for n, s in chunks[1:]])) if chunks[1:] else None

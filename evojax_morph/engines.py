@@ -99,7 +99,7 @@ WARP = Engine(
     prepare=lambda space, models, worlds_per_body: _warp().world_model(
         space, models, worlds_per_body
     ),
-    make_data=lambda worlds, space, n: _warp().make_worlds(space.template, n),
+    make_data=lambda worlds, space, n: _warp().make_worlds(space, n),
     step=_flat(mjx.step),
     forward=_flat(mjx.forward),
     where=lambda done, on_true, on_false: _warp().where_worlds(done, on_true, on_false),

@@ -28,6 +28,8 @@ recomputed from the capsule sizes.
 
 from __future__ import annotations
 
+import os
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -146,7 +148,7 @@ def to_warp(
     _require()
     model = world_model(space, models, envs, graph_mode)
     worlds = models.body_mass.shape[0] * envs
-    return model, make_worlds(space.template, worlds, naconmax_per_world, njmax)
+    return model, make_worlds(space, worlds, naconmax_per_world, njmax)
 
 
 def world_model(space: Space, models: mjx.Model, envs: int, graph_mode=None) -> mjx.Model:
@@ -166,52 +168,87 @@ def world_model(space: Space, models: mjx.Model, envs: int, graph_mode=None) -> 
 
 
 def put_model(mj_model: mujoco.MjModel, graph_mode=None) -> mjx.Model:
-    """`mj_model` as one Warp-impl model shared by every world (no per-world fields)."""
+    """`mj_model` as one Warp-impl model shared by every world (no per-world fields).
+
+    graph_mode None is EVOJAX_MORPH_WARP_GRAPH's `GraphMode` if set (`jax`, `warp`, `none`, ...;
+    for benchmarks), else MJX's default: WARP (Warp's own CUDA graph per call) on a GPU."""
     _require()
     _apply_determinism()
+    if graph_mode is None and os.environ.get("EVOJAX_MORPH_WARP_GRAPH"):
+        from mujoco.mjx.warp.types import GraphMode
+
+        graph_mode = GraphMode[os.environ["EVOJAX_MORPH_WARP_GRAPH"].upper()]
     model = mjx.put_model(mj_model, impl="warp", graph_mode=graph_mode)
     # Warp prints a warning for each step whose solver hits its iteration budget: ours is small
     # on purpose (BodyPlan.iterations), so these would flood the output.
     return model.replace(opt=model.opt.replace(_impl=model.opt._impl.replace(warn_overflow=0)))
 
 
+def buffers(space: Space) -> tuple[int, int]:
+    """`(contacts, rows)` per world: what the largest body of `space` can need at once.
+
+    MuJoCo Warp sizes its contact pool and constraint rows ahead, and launches many solver
+    kernels over every row of every world, used or not; an overflow drops contacts or rows
+    silently (`put_model` turns the warning off). Only capsule-floor pairs collide, a capsule on
+    a plane touches it at 2 points at most, an inactive capsule never does (its margin, see
+    `physics`), and a body has at most one active capsule per node: so 2 x max_nodes contacts.
+    Each takes 4 rows (pyramidal cone, condim 3); each limited joint 1 more. Other constraint
+    kinds are refused rather than counted.
+    """
+    t = space.template
+    if (
+        t.opt.cone != mujoco.mjtCone.mjCONE_PYRAMIDAL
+        or set(t.geom_condim.tolist()) != {3}
+        or t.neq
+        or t.npair
+        or t.ntendon
+        or (t.dof_frictionloss > 0).any()
+        or (t.geom_conaffinity[t.geom_type == mujoco.mjtGeom.mjGEOM_CAPSULE] != 0).any()
+    ):
+        raise ValueError(f"{space.name}: buffers() counts capsule-floor contacts and limits only")
+    capsules = int((t.geom_type == mujoco.mjtGeom.mjGEOM_CAPSULE).sum())
+    contacts = 2 * min(space.max_nodes, capsules)
+    return contacts, 4 * contacts + int(t.jnt_limited.sum())
+
+
 def make_worlds(
-    mj_model: mujoco.MjModel,
+    space: Space,
     worlds: int,
     naconmax_per_world: int | None = None,
     njmax: int | None = None,
+    mj_model: mujoco.MjModel | None = None,
 ) -> mjx.Data:
-    """Warp-impl data of `mj_model` at qpos0 for `worlds` worlds (contact pool shared).
-
-    Defaults: 2 contacts per geom and world, the most a capsule on the floor has (only
-    geom-floor pairs collide); 4 constraint rows per contact (pyramidal cone, condim 3) plus
-    one per joint (limits).
-    """
+    """Warp-impl data of the space's template (or `mj_model`) at qpos0 for `worlds` worlds, the
+    contact pool shared; contacts and rows per world default to `buffers(space)`."""
     _require()
-    if naconmax_per_world is None:
-        naconmax_per_world = 2 * mj_model.ngeom
-    if njmax is None:
-        njmax = 4 * naconmax_per_world + mj_model.njnt
+    contacts, rows = buffers(space)
+    naconmax_per_world = contacts if naconmax_per_world is None else naconmax_per_world
+    njmax = rows if njmax is None else njmax
+    mj_model = space.template if mj_model is None else mj_model
     data = mjx.make_data(mj_model, impl="warp", naconmax=naconmax_per_world * worlds, njmax=njmax)
     # Data's own vmap rule batches the per-world fields and keeps the contact pool shared.
     return jax.vmap(lambda _: data)(jnp.arange(worlds))
 
 
+# What a Warp step reads of the data before writing it: MuJoCo's integration state
+# (mjSTATE_INTEGRATION) and the warm start. Every other per-world field (kinematics, inertia,
+# constraint rows, solver scratch) is recomputed from these before it is read.
+STATE_FIELDS = (
+    "time", "qpos", "qvel", "act", "qacc_warmstart", "ctrl", "qfrc_applied", "xfrc_applied",
+    "eq_active", "mocap_pos", "mocap_quat", "userdata", "history",
+)  # fmt: skip
+
+
 def where_worlds(done: jax.Array, on_true: mjx.Data, on_false: mjx.Data) -> mjx.Data:
-    """World by world, `on_true` where `done` (N,) is set, else `on_false`; the fields Warp
-    shares between worlds (the contact pool, counters) are `on_false`'s. `mjx.Data.where` does
+    """World by world, `on_true`'s state (`STATE_FIELDS`) where `done` (N,) is set, else
+    `on_false`'s; every other field is `on_false`'s, which the next step recomputes: selecting
+    the constraint rows and solver scratch of every world each control step cost more than the
+    state (`tests/test_warp.py` checks that the fitness is unchanged). `mjx.Data.where` does
     this for one world inside a vmap; a flat batch of Warp data cannot be vmapped over."""
-    from mujoco.mjx._src.types import tree_path_to_attr_str
-    from mujoco.mjx.warp import types as warp_types
-
-    per_world = warp_types._BATCH_DIM["Data"]  # the fields with a leading (N,) axis
-
-    def leaf(path, a, b):
-        if not per_world.get(tree_path_to_attr_str(path), True):
-            return b
-        return jnp.where(done.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
-
-    return jax.tree_util.tree_map_with_path(leaf, on_true, on_false)
+    select = lambda a, b: jnp.where(done.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
+    return on_false.replace(
+        **{n: select(getattr(on_true, n), getattr(on_false, n)) for n in STATE_FIELDS}
+    )
 
 
 def step_worlds(model: mjx.Model, data: mjx.Data, ctrl: jax.Array) -> mjx.Data:

@@ -153,12 +153,12 @@ def bench_space(
         else:
             rollout = make_warp_rollout(steps, float(tmpl.opt.timestep))
             unpadded = ew.put_model(unpadded_mj, graph_mode)
-            unpadded_data = ew.make_worlds(unpadded_mj, worlds, naconmax, njmax)
+            unpadded_data = ew.make_worlds(space, worlds, naconmax, njmax, mj_model=unpadded_mj)
             t_unpadded = time_rollout(rollout, unpadded, unpadded_data, repeats)
             # The body m specialised, its fields shared by every world (a leading axis of 1).
             one = jax.tree.map(lambda x: x[None], jax.jit(space.mjx_model)(m))
             padded, _ = ew.to_warp(space, one, 1, graph_mode=graph_mode)
-            padded_data = ew.make_worlds(tmpl, worlds, naconmax, njmax)
+            padded_data = ew.make_worlds(space, worlds, naconmax, njmax)
             t_padded = time_rollout(rollout, padded, padded_data, repeats)
             t_nested = None  # a nested vmap is wrong under Warp (see evojax_morph.warp)
             flat, flat_data = ew.to_warp(space, models, envs, naconmax, njmax, graph_mode)
@@ -208,13 +208,13 @@ def main():
         help="Warp's CUDA graph mode (warp.JaxCallableGraphMode); default MJX's (WARP on a GPU)",
     )
     parser.add_argument(
-        "--naconmax", type=int, default=None, help="Warp contacts per world (default 2 per geom)"
+        "--naconmax", type=int, default=None, help="Warp contacts per world (default: buffers)"
     )
     parser.add_argument(
         "--njmax",
         type=int,
         default=None,
-        help="Warp constraint rows per world (default 4 per contact + joints)",
+        help="Warp constraint rows per world (default warp.buffers(space))",
     )
     args = parser.parse_args()
     jax.config.update("jax_default_matmul_precision", "highest")

@@ -155,6 +155,67 @@ def test_warp_flat_batch_agrees_with_jax_per_world(space):
     assert (moved[wrong_body != np.arange(BODIES)[:, None]] > 100 * WARP_TOL).all(), moved
 
 
+def _step_n(model, data, ctrl):
+    """`data` after len(ctrl) steps of `ctrl` (steps, N, nu), and each step's data."""
+    def body(data, c):
+        data = ew.step_worlds(model, data, c)
+        return data, data
+    return jax.jit(lambda d, c: jax.lax.scan(body, d, c))(data, ctrl)
+
+
+@requires_warp
+def test_buffers_hold_what_the_largest_bodies_need(space):
+    """`buffers(space)` bounds contacts and constraint rows per world: random bodies of the
+    space's full size (its most active capsules), stepped with 4x the room and dropped onto
+    the floor, never need more; and with the bounds as given they step exactly alike."""
+    keys = jax.random.split(jax.random.PRNGKey(3), 16)
+    morphs = jax.vmap(space.random_morphology, (0, None))(keys, 4 * space.default_horizon)
+    capsules = np.asarray(jax.vmap(space.layout)(morphs).geom_active).sum(1)
+    assert capsules.max() <= space.max_nodes and capsules.max() >= space.max_nodes - 1, capsules
+    models = jax.jit(jax.vmap(space.mjx_model))(morphs)
+    contacts, rows = ew.buffers(space)
+    n, steps = models.body_mass.shape[0], 40  # 0.2 s: every body lands and settles its feet
+    ctrl = jax.random.uniform(jax.random.PRNGKey(4), (steps, n, space.template.nu), minval=-1)
+    model, data = ew.to_warp(space, models, 1, naconmax_per_world=4 * contacts, njmax=4 * rows)
+    roomy, trace = _step_n(model, data, ctrl)
+    per_world = [np.bincount(np.asarray(w)[:k], minlength=n).max()
+                 for w, k in zip(trace._impl.contact__worldid, trace._impl.nacon[:, 0])]
+    used_rows = np.asarray(trace._impl.nefc).max()
+    assert 0 < max(per_world) <= contacts and 0 < used_rows <= rows, (per_world, used_rows)
+    model, data = ew.to_warp(space, models, 1)
+    tight, _ = _step_n(model, data, ctrl)
+    np.testing.assert_array_equal(tight.qpos, roomy.qpos)
+
+
+@requires_warp
+def test_where_worlds_selects_all_a_step_reads(space):
+    """Worlds reset with `where_worlds` (the state fields alone) step exactly as worlds whose
+    every per-world field was selected: the next step recomputes the rest."""
+    from mujoco.mjx._src.types import tree_path_to_attr_str
+    from mujoco.mjx.warp import types as warp_types
+
+    models = _bodies(space)
+    model, data = ew.to_warp(space, models, ENVS)
+    ctrl = _controls(space).reshape(STEPS, BODIES * ENVS, -1)
+    first = jax.jit(jax.vmap(mjx.forward, (None, 0)))(model, data)
+    moved, _ = _step_n(model, first, ctrl)
+    done = jnp.arange(BODIES * ENVS) % 2 == 0
+    per_world = warp_types._BATCH_DIM["Data"]
+
+    def every_field(path, a, b):
+        if not per_world.get(tree_path_to_attr_str(path), True):
+            return b
+        return jnp.where(done.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
+
+    full = jax.tree_util.tree_map_with_path(every_field, first, moved)
+    slim = ew.where_worlds(done, first, moved)
+    assert not np.array_equal(slim.xpos, full.xpos)  # the slim reset leaves derived fields stale
+    full, _ = _step_n(model, full, ctrl)
+    slim, _ = _step_n(model, slim, ctrl)
+    for name in ew.STATE_FIELDS:
+        np.testing.assert_array_equal(getattr(slim, name), getattr(full, name), err_msg=name)
+
+
 @requires_warp
 @pytest.mark.slow  # three PPO programs (JAX, Warp, Warp trained) to compile: minutes on 2 cores
 def test_ppo_fitness_on_warp():
