@@ -16,6 +16,10 @@ still left 919 of 1,024 fitness values differing between two calls with the same
 (docs/benchmarks.md), so nothing asks for it by default. Set it before the process's first Warp
 call.
 
+Contacts and constraint rows are allocated per world for the largest body of the space
+(`buffers`), and an auto-reset selects the state alone (`where_worlds`): Warp's solver kernels
+and the reset's copies run over every allocated row of every world, used or not.
+
 Float32 only. The derived constants are computed by `specialise` in the JAX impl and copied;
 `dof_M0` and `stat.meaninertia` are not read by Warp. `geom_aabb` (the broadphase's boxes) is
 recomputed from the capsule sizes.
