@@ -14,6 +14,8 @@ is 4 physics steps of 5 ms. For each batch size B this prints:
                  keys), and how many of the B bodies differ: 0 when the engine and XLA are
                  deterministic
 Timings exclude compilation (a warm-up call first) and are medians of --repeats calls.
+--update-epochs sets PPO's epochs per update: timing 1 against the standard 8 (and
+--train-steps 0, the evaluation episodes alone) splits a call into learner and rollouts.
 --physics names the engine (`evojax_morph.engines`); --deterministic asks XLA for deterministic
 GPU ops first, as the run command does unless --fast-gpu; --warp-deterministic MuJoCo Warp's
 `Option.deterministic`, under EVOJAX_MORPH_MUJOCO_WARP=package (`evojax_morph.physics`).
@@ -25,6 +27,7 @@ GPU ops first, as the run command does unless --fast-gpu; --warp-deterministic M
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 
@@ -111,6 +114,11 @@ def main():
     parser.add_argument("--physics", default="jax", choices=engines.list_engines())
     parser.add_argument("--train-steps", type=int, default=10_000)
     parser.add_argument("--controllers", type=int, default=1)
+    parser.add_argument(
+        "--update-epochs", type=int, default=None,
+        help="PPO epochs per update (default the standard's 8); timing 1 against 8 splits "
+        "the learner's share of a call from the rollouts'",
+    )
     parser.add_argument("--deterministic", action="store_true", help="XLA's deterministic GPU ops")
     parser.add_argument("--warp-deterministic", action="store_true",
                         help="MuJoCo Warp's Option.deterministic (evojax_morph.warp)")
@@ -126,9 +134,10 @@ def main():
     jax.config.update("jax_default_matmul_precision", "highest")
 
     space = em.make_space(args.space)
-    cfg = em.FitnessConfig(
-        ppo=em.standard_ppo(args.train_steps, args.controllers), physics=args.physics
-    )
+    ppo_cfg = em.standard_ppo(args.train_steps, args.controllers)
+    if args.update_epochs is not None:
+        ppo_cfg = dataclasses.replace(ppo_cfg, update_epochs=args.update_epochs)
+    cfg = em.FitnessConfig(ppo=ppo_cfg, physics=args.physics)
     steps = ppo.env_steps_per_morphology(cfg.task, cfg.ppo)
     frame_skip = cfg.task.frame_skip
     walk = jax.jit(jax.vmap(space.random_morphology, (0, None)), static_argnums=1)
@@ -159,6 +168,7 @@ def main():
                 "warp_deterministic": args.warp_deterministic,
                 "train_steps": args.train_steps,
                 "controllers": args.controllers,
+                "update_epochs": ppo_cfg.update_epochs,
                 "batch": batch,
                 "env_steps_per_morphology": steps,
                 "evals_per_s": batch / t_batch,
