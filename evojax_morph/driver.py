@@ -245,12 +245,13 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
         out, p, record, top, (best, float(best_fitness), best_params)
     )
     saved = save_controllers(out, p, cfg.seed, best, best_fitness, best_params, greedy, best_cfg)
+    phase("controllers")
     if lead:
         if top is not None:  # written last: the stage is done, a --resume keeps it
             record["best_morphology"] = best.to_dict()
             (out / "confirmed.json").write_text(json.dumps(record, indent=1))
-        write_results(out, p.space, rows, best, best_fitness, greedy, step, saved, gif, record)
-        phase("results")
+        write_results(out, p.space, rows, best, best_fitness, greedy, step, saved, gif, record,
+                      phase)
         clock = timing(time.perf_counter() - started, chunk_seconds) | {"phases": phases}
         (out / "timing.json").write_text(json.dumps(clock, indent=1))
         if clock["step_seconds"]:
@@ -263,7 +264,8 @@ def timing(total: float, chunks: list[tuple[int, float]]) -> dict:
     """timing.json: this call's wall clock (a resumed run's since it resumed), split into its
     steps and the rest (building, compiling, m0, the confirm stage, the end phase), from
     `execute`'s start (imports excluded); `execute` adds the seconds of its phases (building and
-    m0's evaluation, the steps, the greedy rollout, the confirm stage, the results and best.gif).
+    m0's evaluation, the steps, the greedy rollout, the confirm stage, saving the controllers,
+    the plots and summary, best.gif).
     A step is timed by the chunks after the first (whose
     call compiles); None with one chunk or none."""
     steps = sum(n for n, _ in chunks)
@@ -390,11 +392,12 @@ def save_controllers(out: Path, p: Pipeline, seed: int, best, best_fitness: floa
 
 def write_results(
     out: Path, space, rows: list[dict], best, best_fitness: float, greedy: Greedy | None,
-    steps: int, saved: list[str], gif: bool, record: dict
+    steps: int, saved: list[str], gif: bool, record: dict, phase=lambda name: None
 ) -> None:
     """curve.png, best.xml, trajectory.png (if `greedy`), confirmed.png (if the confirm stage's
     `record` confirmed bodies), summary.json and best.gif (if controllers were `saved` and
-    `gif`), and a printed digest with the best bodies of the body log and the confirmed ones."""
+    `gif`), and a printed digest with the best bodies of the body log and the confirmed ones;
+    `phase("results")` is called before best.gif is drawn, `phase("best_gif")` after."""
     col = lambda name: np.array([r[name] for r in rows], float)  # noqa: E731  (resumed: strings)
     plots.plot_curve(
         out / "curve.png", col("step"), col("reward_median"), col("reward_q25"), col("reward_q75")
@@ -444,6 +447,7 @@ def write_results(
         written = "trajectory.png " + written
     if saved:
         written += " controllers/"
+    phase("results")
     if saved and gif:
         shown = video.render(out, "best", mp4=False)
         for note in shown.notes:
@@ -452,6 +456,7 @@ def write_results(
         written += f" best.gif (drawn by {shown.backend}; the best body walks {walked:.2f} m)"
     elif not saved:
         print("\nno controllers to keep: the fitness trains none (only ppo does), so no best.gif")
+    phase("best_gif")
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     print(f"\nwrote {out}/: {written}")
 

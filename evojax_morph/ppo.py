@@ -18,7 +18,9 @@ from its parent's controller (policy inheritance).
 The pieces, one factory each, as purejaxrl's scans nest: `make_train` (K controllers per body)
 > `make_train_learners` (the update scan) > `make_collect` (COLLECT TRAJECTORIES, the env-step
 scan) and `make_learn` (GAE, then epochs > minibatches of `make_loss`); then
-`make_evaluate_learners` scores the trained controllers.
+`make_evaluate_learners` scores the trained controllers. Their calls run in named scopes
+("reset", "collect", "learn", "evaluate"), to which a profile attributes the device's time
+(`python -m experiments.bench_fitness --trace DIR`); the scopes change no computation.
 """
 
 from __future__ import annotations
@@ -280,9 +282,10 @@ def make_train_learners(space: Space, env: Locomotion, engine: Engine, networks,
     def train_learners(keys: jax.Array, models, params: Params) -> TrainResult:
         learners = keys.shape[0]
         keys, key_reset = jnp.moveaxis(_split2(keys), 1, 0)
-        worlds, world_bodies, first = reset_learners(
-            space, env, engine, key_reset, models, num_envs
-        )  # (L x E,)
+        with jax.named_scope("reset"):
+            worlds, world_bodies, first = reset_learners(
+                space, env, engine, key_reset, models, num_envs
+            )  # (L x E,)
         mask = world_bodies.motors[::num_envs]  # (L, A)
         num_active = jnp.maximum(mask.sum(-1), 1)
         net = {"policy": params.policy, "value": params.value}
@@ -290,14 +293,16 @@ def make_train_learners(space: Space, env: Locomotion, engine: Engine, networks,
 
         def update(carry, _):
             normalizer, net, opt_state, rollout = carry
-            rollout, traj = collect(
-                worlds, world_bodies, first, mask, normalizer, net["policy"], rollout
-            )
+            with jax.named_scope("collect"):
+                rollout, traj = collect(
+                    worlds, world_bodies, first, mask, normalizer, net["policy"], rollout
+                )
             traj = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), traj)  # (L, T, E, ...)
             state, _, last_return, keys = rollout
-            normalizer, net, opt_state, keys, entropy = learn(
-                normalizer, net, opt_state, traj, by_learner(state.obs), mask, keys
-            )
+            with jax.named_scope("learn"):
+                normalizer, net, opt_state, keys, entropy = learn(
+                    normalizer, net, opt_state, traj, by_learner(state.obs), mask, keys
+                )
             metrics = {
                 "return": last_return.mean(-1),
                 "entropy": entropy / num_active,
@@ -312,7 +317,8 @@ def make_train_learners(space: Space, env: Locomotion, engine: Engine, networks,
         params = Params(normalizer=normalizer, policy=net["policy"], value=net["value"])
 
         # EVALUATE: deterministic policy, eval_episodes episodes from fresh resets
-        returns, eval_diverged = evaluate(rollout.keys, models, params)
+        with jax.named_scope("evaluate"):
+            returns, eval_diverged = evaluate(rollout.keys, models, params)
         diverged = eval_diverged.any(-1) | (metrics["diverged"].any(0) if steps else False)
         last = lambda name: metrics[name][-1] if steps else jnp.zeros(learners)
         return TrainResult(

@@ -16,18 +16,27 @@ is 4 physics steps of 5 ms. For each batch size B this prints:
 Timings exclude compilation (a warm-up call first) and are medians of --repeats calls.
 --update-epochs sets PPO's epochs per update: timing 1 against the standard 8 (and
 --train-steps 0, the evaluation episodes alone) splits a call into learner and rollouts.
+--trace DIR records one more call per batch with JAX's profiler (DIR/B<batch>) and adds to the
+row what the device did in it (`trace_summary`: busy and idle time, time by kernel kind, by
+ppo.py's named scopes, the top kernels); `warp_graph_captures` counts the CUDA graphs Warp
+captured during the timed calls (0 when its graph cache holds: a capture costs more than a step).
 --physics names the engine (`evojax_morph.engines`); --deterministic asks XLA for deterministic
 GPU ops first, as the run command does unless --fast-gpu; --warp-deterministic MuJoCo Warp's
 `Option.deterministic`, under EVOJAX_MORPH_MUJOCO_WARP=package (`evojax_morph.physics`).
 
   python -m experiments.bench_fitness --batches 1 16                 # CPU
   python -m experiments.bench_fitness --batches 1 256 1024 4096 --physics warp --deterministic
+  python -m experiments.bench_fitness --batches 1024 --physics warp --deterministic --single 0 \
+      --trace /tmp/trace   # where the device's time goes
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
+import contextlib
 import dataclasses
+import glob
 import json
 import time
 
@@ -43,18 +52,112 @@ from evojax_morph.physics import MUJOCO_WARP
 STANDARD = em.FitnessConfig(ppo=em.standard_ppo(10_000))
 
 
-def timed(fn, repeats: int) -> tuple[float, float, int]:
+def timed(fn, repeats: int, during=None) -> tuple[float, float, int]:
     """(median seconds of `repeats` calls after a warm-up, largest difference between the
-    outputs of all calls, how many outputs differ in any call)."""
+    outputs of all calls, how many outputs differ in any call); the repeats run inside the
+    context manager `during`, if given."""
     first = np.asarray(jax.block_until_ready(fn()))  # compile and warm up
     times, diff, differ = [], 0.0, np.zeros(first.shape, bool)
-    for _ in range(repeats):
-        start = time.perf_counter()
-        out = np.asarray(jax.block_until_ready(fn()))
-        times.append(time.perf_counter() - start)
-        diff = max(diff, float(np.nanmax(np.abs(out - first))) if out.size else 0.0)
-        differ |= out != first
+    with during or contextlib.nullcontext():
+        for _ in range(repeats):
+            start = time.perf_counter()
+            out = np.asarray(jax.block_until_ready(fn()))
+            times.append(time.perf_counter() - start)
+            diff = max(diff, float(np.nanmax(np.abs(out - first))) if out.size else 0.0)
+            differ |= out != first
     return float(np.median(times)), diff, int(differ.sum())
+
+
+class WarpCaptures:
+    """Counts the CUDA graphs Warp captures while it is entered: an FFI call whose buffers miss
+    Warp's graph cache (`JaxCallableGraphMode.WARP`) captures and instantiates a new graph. None
+    where Warp is not installed."""
+
+    def __enter__(self):
+        self.count, self._warp = 0, None
+        try:
+            import warp
+        except ImportError:
+            self.count = None
+            return self
+        base, outer = warp.ScopedCapture, self
+
+        class Counting(base):
+            def __init__(self, *args, **kwargs):
+                outer.count += 1
+                super().__init__(*args, **kwargs)
+
+        self._warp, self._base, warp.ScopedCapture = warp, base, Counting
+        return self
+
+    def __exit__(self, *exc):
+        if self._warp is not None:
+            self._warp.ScopedCapture = self._base
+
+
+def _kind(name: str) -> str:
+    """The kind of a device event, by its name: warp (MuJoCo Warp's kernels), gemm, copy, xla."""
+    low = name.lower()
+    if "memcpy" in low or "memset" in low:
+        return "copy"
+    if "_cuda_kernel_forward" in low:
+        return "warp"
+    if any(k in low for k in ("gemm", "cublas", "cutlass", "xmma", "sm90_")):
+        return "gemm"
+    return "xla"
+
+
+def trace_summary(profile, top: int = 25) -> dict | None:
+    """What the device did in a trace (`jax.profiler.ProfileData`), or None with no GPU plane.
+
+    Returns:
+      span_ms (first kernel's start to last's end), busy_ms (the union of kernel intervals over
+      every stream) and idle_ms; kernels (their count); by_kind_ms (`_kind`); by_scope_ms (the
+      "TensorFlow Name Scope" line's events: ppo.py's named scopes, where the profiler
+      attributes kernels to them); top: [name, ms, count] of the longest kernels by total time.
+    """
+    planes = [p for p in profile.planes if p.name.startswith("/device:GPU")]
+    kernels, scopes = [], collections.Counter()
+    for plane in planes:
+        for line in plane.lines:
+            if line.name.startswith("Stream"):
+                kernels += [(e.start_ns, e.end_ns, e.name) for e in line.events]
+            elif line.name == "TensorFlow Name Scope":
+                for e in line.events:
+                    scopes[e.name] += e.duration_ns / 1e6
+    if not kernels:
+        return None
+    kernels.sort()
+    busy, start, end = 0.0, kernels[0][0], kernels[0][0]
+    for s, e, _ in kernels:
+        if s > end:
+            busy, start = busy + end - start, s
+        end = max(end, e)
+    busy += end - start
+    span = max(e for _, e, _ in kernels) - kernels[0][0]
+    by_kind, by_name = collections.Counter(), collections.defaultdict(lambda: [0.0, 0])
+    for s, e, name in kernels:
+        by_kind[_kind(name)] += (e - s) / 1e6
+        by_name[name][0] += (e - s) / 1e6
+        by_name[name][1] += 1
+    longest = sorted(by_name.items(), key=lambda kv: -kv[1][0])[:top]
+    return {
+        "span_ms": span / 1e6,
+        "busy_ms": busy / 1e6,
+        "idle_ms": (span - busy) / 1e6,
+        "kernels": len(kernels),
+        "by_kind_ms": dict(by_kind),
+        "by_scope_ms": dict(scopes.most_common(top)),
+        "top": [[name[:120], ms, n] for name, (ms, n) in longest],
+    }
+
+
+def traced(fn, directory: str) -> dict | None:
+    """`trace_summary` of one call of `fn` under JAX's profiler, its files in `directory`."""
+    with jax.profiler.trace(directory):
+        jax.block_until_ready(fn())
+    path = sorted(glob.glob(f"{directory}/**/*.xplane.pb", recursive=True))[-1]
+    return trace_summary(jax.profiler.ProfileData.from_file(path))
 
 
 def median_time(fn, repeats: int) -> float:
@@ -123,6 +226,9 @@ def main():
     parser.add_argument("--warp-deterministic", action="store_true",
                         help="MuJoCo Warp's Option.deterministic (evojax_morph.warp)")
     parser.add_argument("--out", default=None, help="append each row to this JSON-lines file")
+    parser.add_argument("--trace", default=None, metavar="DIR",
+                        help="profile one more call per batch into DIR/B<batch>; the row gets "
+                        "what the device did (trace_summary)")
     args = parser.parse_args()
     if args.single < 0:
         parser.error("--single must be >= 0")
@@ -146,7 +252,9 @@ def main():
         keys = jax.random.split(jax.random.PRNGKey(batch), batch)
         morphs = walk(keys, 3)
         evaluate = lambda: em.evaluate(space, morphs, keys, cfg).fitness  # noqa: B023  (timed now)
-        t_batch, repeat_diff, repeat_differing = timed(evaluate, args.repeats)
+        captures = WarpCaptures()  # counted in the timed calls, after the warm-up's captures
+        t_batch, repeat_diff, repeat_differing = timed(evaluate, args.repeats, captures)
+        trace = traced(evaluate, f"{args.trace}/B{batch}") if args.trace else None
 
         t_single = one_at_a_time(space, morphs, keys, cfg, min(batch, args.single))
 
@@ -180,6 +288,8 @@ def main():
                 "batching_gain": None if t_single is None else t_single / t_batch,
                 "repeat_diff": repeat_diff,
                 "repeat_differing": repeat_differing,  # of `batch` fitness values
+                "warp_graph_captures": captures.count if args.physics == "warp" else None,
+                "trace": trace,
                 "date": time.strftime("%Y-%m-%d"),
             }
         )
