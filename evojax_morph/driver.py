@@ -265,9 +265,8 @@ def timing(total: float, chunks: list[tuple[int, float]]) -> dict:
     steps and the rest (building, compiling, m0, the confirm stage, the end phase), from
     `execute`'s start (imports excluded); `execute` adds the seconds of its phases (building and
     m0's evaluation, the steps, the greedy rollout, the confirm stage, saving the controllers,
-    the plots and summary, best.gif).
-    A step is timed by the chunks after the first (whose
-    call compiles); None with one chunk or none."""
+    the plots and summary, best.gif). A step is timed by the chunks after the first (whose call
+    compiles); None with one chunk or none."""
     steps = sum(n for n, _ in chunks)
     step = float(np.median([s / n for n, s in chunks[1:]])) if chunks[1:] else None
     return {"seconds": round(total, 1), "steps": steps, "step_seconds": step and round(step, 3),

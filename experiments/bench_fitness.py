@@ -19,7 +19,7 @@ Timings exclude compilation (a warm-up call first) and are medians of --repeats 
 --trace DIR records one more call per batch with JAX's profiler (DIR/B<batch>) and adds to the
 row what the device did in it (`trace_summary`: busy and idle time, time by kernel kind, by
 ppo.py's named scopes, the top kernels); `warp_graph_captures` counts the CUDA graphs Warp
-captured during the timed calls (0 when its graph cache holds: a capture costs more than a step).
+captured during the timed calls (0 when every call hits its graph cache).
 --physics names the engine (`evojax_morph.engines`); --deterministic asks XLA for deterministic
 GPU ops first, as the run command does unless --fast-gpu; --warp-deterministic MuJoCo Warp's
 `Option.deterministic`, under EVOJAX_MORPH_MUJOCO_WARP=package (`evojax_morph.physics`).
@@ -134,7 +134,7 @@ def trace_summary(profile, top: int = 25) -> dict | None:
             busy, start = busy + end - start, s
         end = max(end, e)
     busy += end - start
-    span = max(e for _, e, _ in kernels) - kernels[0][0]
+    span = end - kernels[0][0]  # `end` is the last end of all
     by_kind, by_name = collections.Counter(), collections.defaultdict(lambda: [0.0, 0])
     for s, e, name in kernels:
         by_kind[_kind(name)] += (e - s) / 1e6
