@@ -85,11 +85,44 @@ def add_distributed_flags(parser: argparse.ArgumentParser) -> None:
 
 
 def start_deterministic(argv) -> None:
-    """XLA's deterministic GPU ops unless --fast-gpu: before anything touches a JAX backend."""
+    """XLA's deterministic GPU ops, before anything touches a JAX backend, unless --fast-gpu or
+    the PPO fitness may step on MuJoCo Warp (`may_use_warp`)."""
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--fast-gpu", action="store_true")
-    if not pre.parse_known_args(argv)[0].fast_gpu:
+    pre.add_argument("--physics", default=AUTO)
+    pre.add_argument("--fitness", default="ppo")
+    pre.add_argument("--resume", action="store_true")
+    pre.add_argument("--out", default=None)
+    known = pre.parse_known_args(argv)[0]
+    if not known.fast_gpu and not may_use_warp(known):
         deterministic_gpu()
+
+
+def may_use_warp(known: argparse.Namespace) -> bool:
+    """Whether the run's PPO fitness may step on MuJoCo Warp: --physics warp, or auto where Warp
+    imports (auto takes it on a GPU; without one, XLA's GPU flags change nothing). A --resume
+    reads both from the run's config.json. Warp orders contacts by thread timing, so such a run
+    is not reproducible whatever XLA does, and XLA's deterministic ops would only cost time
+    (4.5% of a Bad Walker fitness call at B = 1,024 on an H100, docs/benchmarks.md)."""
+    physics, fitness = known.physics, known.fitness
+    if known.resume and known.out:
+        try:
+            saved = json.loads((Path(known.out) / "config.json").read_text())
+            physics, fitness = saved["physics"], saved["fitness"]
+        except (OSError, ValueError, KeyError, TypeError):
+            pass  # the parser says what is wrong with --out
+    if fitness != "ppo":
+        return False
+    return physics == "warp" or (physics == AUTO and warp_imports())
+
+
+def warp_imports() -> bool:
+    """MuJoCo Warp's `importable()`, False where the optional extra is not installed."""
+    try:
+        from evojax_morph import warp
+    except ImportError:
+        return False
+    return warp.importable()[0]
 
 
 def start_distributed(argv) -> None:
@@ -190,8 +223,10 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
     add(
         "--fast-gpu",
         action="store_true",
-        help="leave XLA's deterministic GPU ops off: about 1.4x faster, but the same seed no "
-        "longer gives the same run on a GPU (CPU runs are deterministic either way)",
+        help="leave XLA's deterministic GPU ops off: about 1.4x faster on the JAX engine, but "
+        "the same seed no longer gives the same run on a GPU (CPU runs are deterministic "
+        "either way). A PPO fitness on MuJoCo Warp leaves them off anyway: Warp's own contact "
+        "order is not reproducible",
     )
     add("--hidden", type=int, default=defaults.hidden, help="width of the agent's GNN")
     add(
@@ -305,8 +340,9 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
             print(f"physics: {name} ({why})", flush=True)
         if fitness == "ppo" and name == "warp":
             print("physics: on a GPU MuJoCo Warp orders contacts by thread timing, so this run "
-                  "is not reproducible from its seed; --physics jax is (docs/benchmarks.md)",
-                  flush=True)
+                  "is not reproducible from its seed, and XLA's deterministic ops are left off "
+                  "(they would only cost time); --physics jax is reproducible "
+                  "(docs/benchmarks.md)", flush=True)
         return name
 
     if not args.resume:

@@ -48,6 +48,18 @@ _NOT_IN_WARP = ("dof_M0",)
 
 def available() -> tuple[bool, str]:
     """`(True, "")` when MJX's Warp implementation can run here, else `(False, why not)`."""
+    ok, why = importable()
+    if not ok:
+        return ok, why
+    platform = jax.devices()[0].platform
+    if platform not in ("gpu", "cpu"):
+        return False, f"MuJoCo Warp runs on a CUDA GPU or the CPU, not on {platform}"
+    return True, ""
+
+
+def importable() -> tuple[bool, str]:
+    """`available()`'s checks that start no JAX backend: MJX's Warp implementation, warp-lang
+    and MuJoCo Warp import, and x64 is off."""
     try:
         from mujoco.mjx import warp as mjx_warp
     except ImportError as e:  # an MJX too old to have the Warp implementation
@@ -58,9 +70,6 @@ def available() -> tuple[bool, str]:
         return False, f"MuJoCo Warp (mujoco-warp) does not import; {INSTALL_HINT}"
     if jax.config.jax_enable_x64:
         return False, "MuJoCo Warp runs in float32 only; jax_enable_x64 is on"
-    platform = jax.devices()[0].platform
-    if platform not in ("gpu", "cpu"):
-        return False, f"MuJoCo Warp runs on a CUDA GPU or the CPU, not on {platform}"
     return True, ""
 
 

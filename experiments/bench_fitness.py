@@ -17,8 +17,8 @@ Timings exclude compilation (a warm-up call first) and are medians of --repeats 
 --update-epochs sets PPO's epochs per update: timing 1 against the standard 8 (and
 --train-steps 0, the evaluation episodes alone) splits a call into learner and rollouts.
 --trace DIR records one more call per batch with JAX's profiler (DIR/B<batch>) and adds to the
-row what the device did in it (`trace_summary`: busy and idle time, time by kernel kind, by
-ppo.py's named scopes, the top kernels); `warp_graph_captures` counts the CUDA graphs Warp
+row what the device did in it (`trace_summary`: busy and idle time, time by kernel kind, the
+top kernels); `warp_graph_captures` counts the CUDA graphs Warp
 captured during the timed calls (0 when every call hits its graph cache).
 --physics names the engine (`evojax_morph.engines`); --deterministic asks XLA for deterministic
 GPU ops first, as the run command does unless --fast-gpu; --warp-deterministic MuJoCo Warp's
@@ -112,19 +112,16 @@ def trace_summary(profile, top: int = 25) -> dict | None:
 
     Returns:
       span_ms (first kernel's start to last's end), busy_ms (the union of kernel intervals over
-      every stream) and idle_ms; kernels (their count); by_kind_ms (`_kind`); by_scope_ms (the
-      "TensorFlow Name Scope" line's events: ppo.py's named scopes, where the profiler
-      attributes kernels to them); top: [name, ms, count] of the longest kernels by total time.
+      every stream) and idle_ms; kernels (their count); by_kind_ms (`_kind`); top: [name, ms,
+      count] of the longest kernels by total time. (ppo.py's named scopes are not in a raw
+      trace of a GPU: xprof derives them when it shows one.)
     """
     planes = [p for p in profile.planes if p.name.startswith("/device:GPU")]
-    kernels, scopes = [], collections.Counter()
+    kernels = []
     for plane in planes:
         for line in plane.lines:
             if line.name.startswith("Stream"):
                 kernels += [(e.start_ns, e.end_ns, e.name) for e in line.events]
-            elif line.name == "TensorFlow Name Scope":
-                for e in line.events:
-                    scopes[e.name] += e.duration_ns / 1e6
     if not kernels:
         return None
     kernels.sort()
@@ -147,7 +144,6 @@ def trace_summary(profile, top: int = 25) -> dict | None:
         "idle_ms": (span - busy) / 1e6,
         "kernels": len(kernels),
         "by_kind_ms": dict(by_kind),
-        "by_scope_ms": dict(scopes.most_common(top)),
         "top": [[name[:120], ms, n] for name, (ms, n) in longest],
     }
 

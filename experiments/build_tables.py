@@ -1,12 +1,13 @@
 """Build a landscape table: every body of an enumerable space x S results of the PPO fitness.
 
 Each result is one controller trained from scratch at the `run` command's GPU settings
-(`em.standard_ppo(50_000)`, one controller, XLA's deterministic GPU ops unless --fast-gpu),
-result s of body k with key fold_in(fold_in(PRNGKey(--seed), k), s), so any K can be drawn
-from them later (the `table` fitness, `evojax_morph.fitnesses.table`). The (body, seed) jobs
-run in batches of --batch in `em.evaluate` calls of one shape; the table is saved after every
-batch and a rerun with the same flags skips what is done, so a build can span several device
-sessions (a few minutes of H200 per space and 32 seeds: see the table's metadata).
+(`em.standard_ppo(50_000)`, one controller, XLA's deterministic GPU ops unless --fast-gpu or
+--physics warp), result s of body k with key fold_in(fold_in(PRNGKey(--seed), k), s), so any K
+can be drawn from them later (the `table` fitness, `evojax_morph.fitnesses.table`). The (body,
+seed) jobs run in batches of --batch in `em.evaluate` calls of one shape; the table is saved
+after every batch and a rerun with the same flags skips what is done, so a build can span
+several device sessions (a few minutes of H200 per space and 32 seeds: see the table's
+metadata).
 
   python -m experiments.build_tables --space bad_walker --seeds 32              # GPU: the table
   python -m experiments.build_tables --space length_walker --seeds 32

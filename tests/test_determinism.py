@@ -1,5 +1,6 @@
 """The GPU determinism switch: it must reach XLA before a backend starts, and say when it cannot."""
 
+import json
 import os
 import subprocess
 import sys
@@ -32,3 +33,33 @@ def test_switch_before_the_backend_starts_and_refused_after():
         "3.0",
     ]  # set, and the CPU backend accepts the GPU flag
     assert probe("late") == ["False", "False", "3.0"]  # nothing changed once a backend was up
+
+
+def test_run_asks_for_deterministic_ops_unless_the_ppo_fitness_may_step_on_warp(
+    tmp_path, monkeypatch
+):
+    from evojax_morph import run
+
+    asked = []
+    monkeypatch.setattr(run, "deterministic_gpu", lambda: asked.append(True))
+    monkeypatch.setattr(run, "warp_imports", lambda: True)
+
+    def asks(*argv) -> bool:
+        asked.clear()
+        run.start_deterministic(list(argv))
+        return bool(asked)
+
+    assert asks("--physics", "jax")
+    assert not asks("--physics", "warp")
+    assert not asks()  # auto, where Warp imports
+    assert not asks("--physics", "warp", "--fast-gpu")
+    assert asks("--physics", "warp", "--fitness", "table")  # no physics: reproducible
+    assert asks("--fitness", "tame")  # tame runs on the JAX engine
+    monkeypatch.setattr(run, "warp_imports", lambda: False)
+    assert asks()  # auto without Warp: the JAX engine
+    assert not asks("--fast-gpu")
+    # a --resume follows the run's saved config, not the defaults
+    (tmp_path / "config.json").write_text(json.dumps({"physics": "warp", "fitness": "ppo"}))
+    assert not asks("--resume", "--out", str(tmp_path), "--physics", "jax")
+    (tmp_path / "config.json").write_text(json.dumps({"physics": "jax", "fitness": "ppo"}))
+    assert asks("--resume", "--out", str(tmp_path))
