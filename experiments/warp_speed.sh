@@ -15,33 +15,31 @@ set -uo pipefail
 out=${1:?usage: warp_speed.sh OUT [TRAIN_STEPS]}; steps=${2:-10000}
 bw=${BW_B:-1024}; con=${CON_B:-256}  # the batch sizes of the two spaces' rows
 mkdir -p "$out"
-row() {  # row NAME [ENV=VALUE ...] -- BENCH_FITNESS_ARGS ...
+row() {  # row NAME BENCH_FITNESS_ARGS ...
   local name=$1; shift
-  local env=(); while [ "$1" != "--" ]; do env+=("$1"); shift; done; shift
   if grep -q "\"row\": \"$name\"" "$out/rows.jsonl" 2>/dev/null; then echo "$name: done"; return; fi
   echo "$name: $(date +%T)"
   rm -f "$out/$name.jsonl"
-  env "${env[@]}" timeout "${ROW_TIMEOUT:-480}" python -m experiments.bench_fitness \
+  timeout "${ROW_TIMEOUT:-480}" python -m experiments.bench_fitness \
     --physics warp --single 0 --repeats 2 --train-steps "$steps" \
     --out "$out/$name.jsonl" "$@" > "$out/$name.log" 2>&1 \
     || { echo "$name: failed or timed out (see $out/$name.log)"; return; }
   python -c "import json,sys; [print(json.dumps({'row': sys.argv[1], **json.loads(l)})) for l in open(sys.argv[2])]" \
     "$name" "$out/$name.jsonl" >> "$out/rows.jsonl"
 }
-row bad_walker -- --batches "$bw"
-row bad_walker_epochs1 -- --batches "$bw" --update-epochs 1
-row bad_walker_eval_only -- --batches "$bw" --train-steps 0
-row constructor -- --space constructor --batches "$con"
-row bad_walker_trace -- --batches "$bw" --train-steps 1280 --repeats 1 --trace "$out/trace/bw"
-row constructor_trace -- --space constructor --batches "$con" --train-steps 1280 --repeats 1 \
+row bad_walker --batches "$bw"
+row bad_walker_epochs1 --batches "$bw" --update-epochs 1
+row bad_walker_eval_only --batches "$bw" --train-steps 0
+row constructor --space constructor --batches "$con"
+row bad_walker_trace --batches "$bw" --train-steps 1280 --repeats 1 --trace "$out/trace/bw"
+row constructor_trace --space constructor --batches "$con" --train-steps 1280 --repeats 1 \
   --trace "$out/trace/con"
 python - "$out/rows.jsonl" <<'PY'
 import json, sys
 for r in map(json.loads, open(sys.argv[1])):
     t = r.get("trace") or {}
     kinds = " ".join(f"{k} {v:.0f}" for k, v in sorted(t.get("by_kind_ms", {}).items()))
-    scopes = " ".join(f"{k} {v:.0f}" for k, v in list(t.get("by_scope_ms", {}).items())[:6])
     print(f"{r['row']:<20} B={r['batch']:<5} {r['evals_per_s']:8.1f} evals/s  ppo/phys "
           f"{r['ppo_over_physics']:.0%}  captures {r['warp_graph_captures']}"
-          + (f"  busy/span {t['busy_ms']:.0f}/{t['span_ms']:.0f} ms  {kinds} | {scopes}" if t else ""))
+          + (f"  busy/span {t['busy_ms']:.0f}/{t['span_ms']:.0f} ms  {kinds}" if t else ""))
 PY
