@@ -183,10 +183,13 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     bar = tqdm(total=cfg.steps, initial=min(step, cfg.steps), unit="step", dynamic_ncols=True,
                file=sys.stdout, disable=not lead)
     chunks_done, chunk_seconds = 0, []  # (steps, wall clock) of each chunk; the first compiles
+    dispatch = None  # the first chunk's host side: tracing, and compiling or loading its program
     while step < cfg.steps:
         n = min(cfg.chunk, cfg.steps - step)
         chunk_start = time.perf_counter()
         state, metrics = p.agent.chunk(state, n)
+        if dispatch is None:  # JAX dispatches asynchronously: to_host waits for the device
+            dispatch = round(time.perf_counter() - chunk_start, 2)
         metrics = to_host(metrics)
         chunk_seconds.append((n, time.perf_counter() - chunk_start))
         bodies = metrics.pop("bodies")
@@ -252,7 +255,8 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
             (out / "confirmed.json").write_text(json.dumps(record, indent=1))
         write_results(out, p.space, rows, best, best_fitness, greedy, step, saved, gif, record,
                       phase)
-        clock = timing(time.perf_counter() - started, chunk_seconds) | {"phases": phases}
+        clock = timing(time.perf_counter() - started, chunk_seconds) | {
+            "phases": phases, "first_chunk_dispatch": dispatch}
         (out / "timing.json").write_text(json.dumps(clock, indent=1))
         if clock["step_seconds"]:
             print(f"time: {clock['seconds']:.0f} s, {clock['step_seconds']:.3g} s a step, "
@@ -265,8 +269,9 @@ def timing(total: float, chunks: list[tuple[int, float]]) -> dict:
     steps and the rest (building, compiling, m0, the confirm stage, the end phase), from
     `execute`'s start (imports excluded); `execute` adds the seconds of its phases (building and
     m0's evaluation, the steps, the greedy rollout, the confirm stage, saving the controllers,
-    the plots and summary, best.gif). A step is timed by the chunks after the first (whose call
-    compiles); None with one chunk or none."""
+    the plots and summary, best.gif) and `first_chunk_dispatch`, the first chunk call's host side
+    (tracing, and compiling or loading its program; the device's work comes after). A step is
+    timed by the chunks after the first (whose call compiles); None with one chunk or none."""
     steps = sum(n for n, _ in chunks)
     step = float(np.median([s / n for n, s in chunks[1:]])) if chunks[1:] else None
     return {"seconds": round(total, 1), "steps": steps, "step_seconds": step and round(step, 3),

@@ -112,6 +112,7 @@ def test_resume_matches_an_uninterrupted_run(tmp_path, straight):
     assert list(t["phases"]) == ["build_and_m0", "steps", "greedy_rollout", "confirm",
                                  "controllers", "results", "best_gif"]
     assert abs(sum(t["phases"].values()) - t["seconds"]) < 0.5, t  # the phases fill the call
+    assert 0 <= t["first_chunk_dispatch"] <= t["phases"]["steps"], t
     assert json.loads((split / "config.json").read_text())["physics"] == "jax"  # auto on a CPU
     assert (straight / "metrics.csv").read_text() == (split / "metrics.csv").read_text()
     assert log_rows(split) == log_rows(straight)
