@@ -103,7 +103,7 @@ def may_use_warp(known: argparse.Namespace) -> bool:
     imports (auto takes it on a GPU; without one, XLA's GPU flags change nothing). A --resume
     reads both from the run's config.json. Warp orders contacts by thread timing, so such a run
     is not reproducible whatever XLA does, and XLA's deterministic ops would only cost time
-    (4.5% of a Bad Walker fitness call at B = 1,024 on an H100, docs/benchmarks.md)."""
+    (4.6% of a Bad Walker fitness call at B = 1,024 on an H100, docs/benchmarks.md)."""
     physics, fitness = known.physics, known.fitness
     if known.resume and known.out:
         try:
@@ -117,11 +117,9 @@ def may_use_warp(known: argparse.Namespace) -> bool:
 
 
 def warp_imports() -> bool:
-    """MuJoCo Warp's `importable()`, False where the optional extra is not installed."""
-    try:
-        from evojax_morph import warp
-    except ImportError:
-        return False
+    """MuJoCo Warp's `importable()` (False where the optional extra is not installed)."""
+    from evojax_morph import warp  # imports without the extra; it loads Warp on first use
+
     return warp.importable()[0]
 
 

@@ -18,15 +18,16 @@ Timings exclude compilation (a warm-up call first) and are medians of --repeats 
 --train-steps 0, the evaluation episodes alone) splits a call into learner and rollouts.
 --trace DIR records one more call per batch with JAX's profiler (DIR/B<batch>) and adds to the
 row what the device did in it (`trace_summary`: busy and idle time, time by kernel kind, the
-top kernels); `warp_graph_captures` counts the CUDA graphs Warp
-captured during the timed calls (0 when every call hits its graph cache).
+top kernels); `warp_graph_captures` counts the CUDA graphs Warp captured during the timed
+calls (0 when every call hits its graph cache).
 --physics names the engine (`evojax_morph.engines`); --deterministic asks XLA for deterministic
-GPU ops first, as the run command does unless --fast-gpu; --warp-deterministic MuJoCo Warp's
+GPU ops first, as the run command does on the JAX engine unless --fast-gpu (on Warp it leaves
+them off: they buy no reproducibility there); --warp-deterministic MuJoCo Warp's
 `Option.deterministic`, under EVOJAX_MORPH_MUJOCO_WARP=package (`evojax_morph.physics`).
 
   python -m experiments.bench_fitness --batches 1 16                 # CPU
-  python -m experiments.bench_fitness --batches 1 256 1024 4096 --physics warp --deterministic
-  python -m experiments.bench_fitness --batches 1024 --physics warp --deterministic --single 0 \
+  python -m experiments.bench_fitness --batches 1 256 1024 4096 --physics warp
+  python -m experiments.bench_fitness --batches 1024 --physics warp --single 0 \
       --trace /tmp/trace   # where the device's time goes
 """
 
