@@ -17,7 +17,7 @@ vmapped over: reset, step and select (`where`) are this module's, on the whole b
   engine = get_engine("jax")
   worlds = engine.prepare(space, models, W)          # models: (B,) from space.mjx_model
   data = engine.forward(worlds, engine.make_data(worlds, space, B * W))
-  data = engine.step(worlds, data.replace(ctrl=ctrl))   # ctrl: (B * W, nu)
+  data = engine.step(worlds, data.replace(ctrl=ctrl), 4)   # 4 physics steps; ctrl: (B * W, nu)
 """
 
 from __future__ import annotations
@@ -41,8 +41,8 @@ class Engine(NamedTuple):
       bodies (`space.mjx_model`, leaves with a leading (B,) axis), each simulated in
       `worlds_per_body` worlds; a pytree, jittable.
     make_data(worlds, space, n) -> (n,) data at qpos0 (n = B x worlds_per_body).
-    step(worlds, data) -> data one physics step later; forward(worlds, data) -> data with
-      positions and velocities propagated (after a reset).
+    step(worlds, data, n) -> data n physics steps later (one engine call where it can);
+      forward(worlds, data) -> data with positions and velocities propagated (after a reset).
     where(done, on_true, on_false) -> data: world by world, `on_true` where done (n,) is set.
     """
 
@@ -50,7 +50,7 @@ class Engine(NamedTuple):
     available: Callable[[], tuple[bool, str]]
     prepare: Callable[[Space, mjx.Model, int], Any]
     make_data: Callable[[Any, Space, int], mjx.Data]
-    step: Callable[[Any, mjx.Data], mjx.Data]
+    step: Callable[[Any, mjx.Data, int], mjx.Data]
     forward: Callable[[Any, mjx.Data], mjx.Data]
     where: Callable[[jax.Array, mjx.Data, mjx.Data], mjx.Data]
 
@@ -78,7 +78,9 @@ JAX = Engine(
     available=lambda: (True, ""),
     prepare=lambda space, models, worlds_per_body: models,
     make_data=_jax_make_data,
-    step=_per_body(mjx.step),
+    step=lambda models, data, n: jax.lax.fori_loop(
+        0, n, lambda _, d: _per_body(mjx.step)(models, d), data
+    ),
     forward=_per_body(mjx.forward),
     where=tree_select,
 )
@@ -100,7 +102,7 @@ WARP = Engine(
         space, models, worlds_per_body
     ),
     make_data=lambda worlds, space, n: _warp().make_worlds(space, n),
-    step=_flat(mjx.step),
+    step=lambda model, data, n: _warp().steps(model, data, n),
     forward=_flat(mjx.forward),
     where=lambda done, on_true, on_false: _warp().where_worlds(done, on_true, on_false),
 )

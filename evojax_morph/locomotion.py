@@ -126,8 +126,7 @@ class Locomotion:
     ) -> EnvState:
         """`step` of N worlds at once; action (N, action_size)."""
         action, ctrl = jax.vmap(self._controls)(bodies, state.data.ctrl, action)
-        step = lambda _, d: engine.step(worlds, d)
-        data = jax.lax.fori_loop(0, self.cfg.frame_skip, step, state.data.replace(ctrl=ctrl))
+        data = engine.step(worlds, state.data.replace(ctrl=ctrl), self.cfg.frame_skip)
         outcome = jax.vmap(self._outcome)(
             bodies, state.data.qpos, state.steps, action, data.qpos, data.qvel
         )

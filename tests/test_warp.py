@@ -164,6 +164,33 @@ def _step_n(model, data, ctrl):
 
 
 @requires_warp
+def test_steps_in_one_warp_call_equal_one_call_a_step(space, monkeypatch):
+    """`steps(model, data, 4)` runs the 4 physics steps in one call into Warp (one shim, its own
+    Warp callable) and lands on the same state, bit for bit, as 4 calls of one step; and the
+    benchmark switch EVOJAX_MORPH_WARP_FUSE=0 does make 4 calls."""
+    model, data = ew.to_warp(space, _bodies(space), ENVS)
+    ctrl = _controls(space)[0].reshape(BODIES * ENVS, -1)
+    data = data.replace(ctrl=ctrl)
+
+    def calls(fn):  # (Warp calls written, whether in a loop)
+        text = str(jax.make_jaxpr(fn)(model, data))
+        return text.count("ffi_call"), "while" in text or "scan" in text
+
+    fused = lambda m, d: ew.steps(m, d, 4)
+    single = lambda m, d: ew.step_worlds(m, d, d.ctrl)
+    got = jax.jit(fused)(model, data)
+    want = data
+    for _ in range(4):
+        want = jax.jit(single)(model, want)
+    for name in ("qpos", "qvel", "qacc_warmstart", "time"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+    assert np.abs(np.asarray(got.qpos) - np.asarray(data.qpos)).max() > 1e-4  # it moved
+    assert calls(fused) == calls(single) == (1, False)
+    monkeypatch.setenv("EVOJAX_MORPH_WARP_FUSE", "0")
+    assert calls(lambda m, d: ew.steps(m, d, 4)) == (1, True)  # a new function: jit caches
+
+
+@requires_warp
 def test_buffers_hold_what_the_largest_bodies_need(space):
     """`buffers(space)` bounds contacts and constraint rows per world: random bodies of the
     space's full size (its most active capsules), stepped with 4x the room and dropped onto
