@@ -270,14 +270,16 @@ def steps(model: mjx.Model, data: mjx.Data, n: int) -> mjx.Data:
     """`n` physics steps of every world (N,) in ONE call into Warp, the same kernels in the same
     order as `n` calls of `jax.vmap(mjx.step, (None, 0))`.
 
-    Each call into Warp is a Python callback run by XLA on the host; on a GPU it reads the
-    addresses of its ~800 buffers to find its captured CUDA graph, about 0.1 ms, with the
-    device idle around it. A control step of 4 physics steps pays that once instead of 4 times.
-    EVOJAX_MORPH_WARP_FUSE=0 makes `n` calls instead (for benchmarks)."""
-    if n == 1 or os.environ.get("EVOJAX_MORPH_WARP_FUSE", "1") == "0":
+    Each call into Warp is a Python callback that XLA runs on the host, which reads the
+    addresses of the step's ~800 buffers to find its captured CUDA graph (0.1 ms on a CPU). A
+    control step of 4 physics steps now pays that once: on an H100 a PPO fitness call got 2.3%
+    to 4.9% faster (docs/benchmarks.md). EVOJAX_MORPH_WARP_FUSE=0 makes `n` calls instead (for
+    benchmarks), as does an MJX whose internals `_fused_step` does not find (with a warning)."""
+    fused = None if n == 1 or os.environ.get("EVOJAX_MORPH_WARP_FUSE") == "0" else _fused_step(n)
+    if fused is None:
         one = jax.vmap(mjx.step, in_axes=(None, 0))
         return jax.lax.fori_loop(0, n, lambda _, d: one(model, d), data)
-    return jax.vmap(_fused_step(n), in_axes=(None, 0))(model, data)
+    return jax.vmap(fused, in_axes=(None, 0))(model, data)
 
 
 @functools.cache
@@ -285,11 +287,18 @@ def _fused_step(n: int):
     """MJX's Warp `step` (`mujoco.mjx.warp.forward.step`) with its Warp function running
     `mujoco_warp.step` n times: a copy of MJX's functions whose module globals name an `n`-step
     shim in place of the one-step one. MJX's FFI wrapper caches its Warp callable per shim, so
-    the copy gets its own."""
+    the copy gets its own. None where MJX's functions are not where MJX 3.17 has them."""
     import types
+    import warnings
 
     from mujoco.mjx.warp import ffi
     from mujoco.mjx.warp import forward as mjx_warp
+
+    one = getattr(getattr(mjx_warp, "_step_shim", None), "__wrapped__", None)  # under
+    if one is None or not hasattr(mjx_warp, "_step_jax_impl"):  # `ffi.format_args_for_warp`
+        warnings.warn("MJX's Warp step is not as evojax_morph.warp expects (MJX 3.17): one "
+                      "call into Warp per physics step, slower", stacklevel=3)
+        return None
 
     def mjwarp_step(m, d):
         for _ in range(n):
@@ -302,7 +311,6 @@ def _fused_step(n: int):
         out.__annotations__, out.__kwdefaults__ = dict(fn.__annotations__), fn.__kwdefaults__
         return out
 
-    one = mjx_warp._step_shim.__wrapped__  # under MJX's `format_args_for_warp`
     shim = ffi.format_args_for_warp(copy(one, mjwarp=types.SimpleNamespace(step=mjwarp_step)))
     impl = copy(mjx_warp._step_jax_impl, _step_shim=shim)
 

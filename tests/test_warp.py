@@ -10,6 +10,7 @@ import os
 import re
 import subprocess
 import sys
+import types
 
 import chex
 import jax
@@ -188,6 +189,14 @@ def test_steps_in_one_warp_call_equal_one_call_a_step(space, monkeypatch):
     assert calls(fused) == calls(single) == (1, False)
     monkeypatch.setenv("EVOJAX_MORPH_WARP_FUSE", "0")
     assert calls(lambda m, d: ew.steps(m, d, 4)) == (1, True)  # a new function: jit caches
+    # An MJX without the functions the copy is made of: a warning, and one call a step.
+    monkeypatch.delenv("EVOJAX_MORPH_WARP_FUSE")
+    from mujoco.mjx.warp import forward
+
+    monkeypatch.setattr(mjx_warp, "forward", types.SimpleNamespace(step=forward.step))
+    monkeypatch.setattr(ew, "_fused_step", functools.cache(ew._fused_step.__wrapped__))
+    with pytest.warns(UserWarning, match="one call into Warp per physics step"):
+        assert calls(lambda m, d: ew.steps(m, d, 3)) == (1, True)
 
 
 @requires_warp
