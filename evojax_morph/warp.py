@@ -294,8 +294,9 @@ def _fused_step(n: int):
     from mujoco.mjx.warp import ffi
     from mujoco.mjx.warp import forward as mjx_warp
 
-    one = getattr(getattr(mjx_warp, "_step_shim", None), "__wrapped__", None)  # under
-    if one is None or not hasattr(mjx_warp, "_step_jax_impl"):  # `ffi.format_args_for_warp`
+    # MJX wraps its shim in `ffi.format_args_for_warp`: the copy is of the function inside.
+    one = getattr(getattr(mjx_warp, "_step_shim", None), "__wrapped__", None)
+    if one is None or not hasattr(mjx_warp, "_step_jax_impl"):
         warnings.warn("MJX's Warp step is not as evojax_morph.warp expects (MJX 3.17): one "
                       "call into Warp per physics step, slower", stacklevel=3)
         return None

@@ -167,8 +167,8 @@ def _step_n(model, data, ctrl):
 @requires_warp
 def test_steps_in_one_warp_call_equal_one_call_a_step(space, monkeypatch):
     """`steps(model, data, 4)` runs the 4 physics steps in one call into Warp (one shim, its own
-    Warp callable) and lands on the same state, bit for bit, as 4 calls of one step; and the
-    benchmark switch EVOJAX_MORPH_WARP_FUSE=0 does make 4 calls."""
+    Warp callable) and lands on the same state, bit for bit, as 4 calls of one step; the
+    benchmark switch EVOJAX_MORPH_WARP_FUSE=0, and an MJX laid out otherwise, make 4 calls."""
     model, data = ew.to_warp(space, _bodies(space), ENVS)
     ctrl = _controls(space)[0].reshape(BODIES * ENVS, -1)
     data = data.replace(ctrl=ctrl)
