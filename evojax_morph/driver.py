@@ -183,12 +183,12 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     bar = tqdm(total=cfg.steps, initial=min(step, cfg.steps), unit="step", dynamic_ncols=True,
                file=sys.stdout, disable=not lead)
     chunks_done, chunk_seconds = 0, []  # (steps, wall clock) of each chunk; the first compiles
-    dispatch = None  # the first chunk's host side: tracing, and compiling or loading its program
+    dispatch = None  # seconds until the first chunk call returns (`timing`)
     while step < cfg.steps:
         n = min(cfg.chunk, cfg.steps - step)
         chunk_start = time.perf_counter()
         state, metrics = p.agent.chunk(state, n)
-        if dispatch is None:  # JAX dispatches asynchronously: to_host waits for the device
+        if dispatch is None:  # when the call returns; to_host then waits for the device
             dispatch = round(time.perf_counter() - chunk_start, 2)
         metrics = to_host(metrics)
         chunk_seconds.append((n, time.perf_counter() - chunk_start))
@@ -269,8 +269,10 @@ def timing(total: float, chunks: list[tuple[int, float]]) -> dict:
     steps and the rest (building, compiling, m0, the confirm stage, the end phase), from
     `execute`'s start (imports excluded); `execute` adds the seconds of its phases (building and
     m0's evaluation, the steps, the greedy rollout, the confirm stage, saving the controllers,
-    the plots and summary, best.gif) and `first_chunk_dispatch`, the first chunk call's host side
-    (tracing, and compiling or loading its program; the device's work comes after). A step is
+    the plots and summary, best.gif) and `first_chunk_dispatch`, how long the first chunk call
+    takes to return: its host side (tracing, compiling or loading) where JAX dispatches
+    asynchronously, but with MuJoCo Warp on a GPU also most of the step's work, since XLA runs
+    Warp's callbacks on the calling thread (docs/benchmarks.md). A step is
     timed by the chunks after the first (whose call compiles); None with one chunk or none."""
     steps = sum(n for n, _ in chunks)
     step = float(np.median([s / n for n, s in chunks[1:]])) if chunks[1:] else None

@@ -73,14 +73,14 @@ def _jax_make_data(models: mjx.Model, space: Space, n: int) -> mjx.Data:
     return jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), one)
 
 
+_jax_step = _per_body(mjx.step)
+
 JAX = Engine(
     name="jax",
     available=lambda: (True, ""),
     prepare=lambda space, models, worlds_per_body: models,
     make_data=_jax_make_data,
-    step=lambda models, data, n: jax.lax.fori_loop(
-        0, n, lambda _, d: _per_body(mjx.step)(models, d), data
-    ),
+    step=lambda models, data, n: jax.lax.fori_loop(0, n, lambda _, d: _jax_step(models, d), data),
     forward=_per_body(mjx.forward),
     where=tree_select,
 )

@@ -191,6 +191,7 @@ def make_raw_physics(engine: engines.Engine, space, steps: int):
 
         def body(data, t):
             ctrl = jnp.sin(8.0 * t * space.template.opt.timestep + phase)
+            # one physics step a call (the fitness makes one call a control step on Warp)
             return engine.step(worlds, data.replace(ctrl=ctrl), 1), None
 
         return jax.lax.scan(body, data, jnp.arange(steps))[0].qpos
