@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.stats
 
-from evojax_morph.fitness import evaluate
+from evojax_morph.fitness import evaluate, lower_evaluate
 from evojax_morph.fitnesses import FitnessConfig
 from evojax_morph.morphology import Morphology
 from evojax_morph.ppo import Params
@@ -56,6 +56,16 @@ def t_interval(values: np.ndarray, level: float = 0.95) -> tuple[float, float]:
     return float(values.mean() - half), float(values.mean() + half)
 
 
+def lower_confirm(space: Space, bodies: int, cfg: FitnessConfig, controllers: int,
+                  mesh=None) -> list:
+    """The programs `confirm` compiles for `bodies` bodies, lowered for compiling ahead."""
+    return lower_evaluate(space, bodies * controllers, _one_controller(cfg), mesh)
+
+
+def _one_controller(cfg: FitnessConfig) -> FitnessConfig:
+    return dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, controllers=1))
+
+
 def confirm(
     space: Space,
     morphs: Morphology,
@@ -87,7 +97,7 @@ def confirm(
     if controllers < 2:
         raise ValueError(f"confirm needs at least 2 controllers per body, got {controllers}")
     n = morphs.active.shape[0]
-    one = dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, controllers=1))
+    one = _one_controller(cfg)
     copies = jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x), controllers, axis=0), morphs)
     res = to_host(evaluate(space, copies, key, one, mesh=mesh))
     per_body = lambda x: np.asarray(x).reshape((n, controllers) + x.shape[1:])  # noqa: E731

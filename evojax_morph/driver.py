@@ -23,11 +23,12 @@ import jax
 import numpy as np
 
 from evojax_morph import bodylog, controllers, plots, video
-from evojax_morph.confirm import Confirmed, confirm
+from evojax_morph.confirm import Confirmed, confirm, lower_confirm
 from evojax_morph.fitnesses import get_fitness
 from evojax_morph.morphology import Morphology
 from evojax_morph.pipeline import Greedy, Pipeline, RunConfig, build, make_greedy_rollout
 from evojax_morph.sharding import barrier, batch_mesh, replicated, to_host
+from evojax_morph.warmup import Warmup
 
 CONFIRM_SALT = 0x636F6E66  # the confirm stage's key: fold_in(PRNGKey(seed), CONFIRM_SALT)
 
@@ -117,7 +118,15 @@ def fresh_run_dir(cfg: RunConfig) -> Path:
 def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     """Runs `cfg` in the directory `out` (checked writable), from its last checkpoint if
     `resume`, drawing best.gif at the end if `gif`; every process calls it, process 0 writes
-    the files and prints."""
+    the files and prints. The programs called after m0's compile ahead (`compile_ahead`)."""
+    ahead = Warmup()
+    try:
+        _execute(cfg, out, resume, gif, ahead)
+    finally:
+        ahead.close(wait=False)  # on an error, drops the programs not begun
+
+
+def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) -> None:
     started = time.perf_counter()
     phases, last = {}, [started]  # wall clock of each phase, for timing.json
 
@@ -141,14 +150,17 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
 
     key = jax.random.PRNGKey(cfg.seed)
     key_init, key_greedy = jax.random.split(key)
+    # The agent state's shape and placement: where a checkpoint is restored to, what the later
+    # programs are compiled for.
+    on_mesh = lambda x: jax.ShapeDtypeStruct(  # noqa: E731
+        x.shape, x.dtype, sharding=replicated(batch_mesh()), weak_type=x.weak_type
+    )
+    abstract = jax.tree.map(on_mesh, jax.eval_shape(p.agent.init, key_init))
+    greedy_rollout = None if p.agent.scores is None else make_greedy_rollout(p)
+    compile_ahead(ahead, p, cfg, abstract, greedy_rollout, key_greedy, gif)  # while m0 runs
     rows = []
     step = state = None
     if resume:
-        # Restored onto this run's devices, however many the saving run had.
-        on_mesh = lambda x: jax.ShapeDtypeStruct(  # noqa: E731
-            x.shape, x.dtype, sharding=replicated(batch_mesh())
-        )
-        abstract = jax.tree.map(on_mesh, jax.eval_shape(p.agent.init, key_init))
         import orbax.checkpoint as ocp
 
         restore = ocp.args.Composite(state=ocp.args.StandardRestore(abstract))
@@ -186,6 +198,7 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     dispatch = None  # seconds until the first chunk call returns (`timing`)
     while step < cfg.steps:
         n = min(cfg.chunk, cfg.steps - step)
+        ahead.wait(f"chunk {n}")
         chunk_start = time.perf_counter()
         state, metrics = p.agent.chunk(state, n)
         if dispatch is None:  # when the call returns; to_host then waits for the device
@@ -235,15 +248,18 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
         (state.best_morph, state.best_fitness, state.best_params)
     )
     greedy = None
-    if p.agent.scores is not None:  # the baselines have no policy to roll out
-        greedy = make_greedy_rollout(p)(state.learner, state.first, key_greedy)
+    if greedy_rollout is not None:  # the baselines have no policy to roll out
+        ahead.wait("greedy")
+        greedy = greedy_rollout(state.learner, state.first, key_greedy)
     if lead:
         writer.close()
         log_bodies.close()
     barrier("body log written")  # every process reads it in the confirm stage
     phase("greedy_rollout")
+    ahead.wait("confirm")
     record, top = confirm_stage(out, p, cfg, step, log)
     phase("confirm")
+    ahead.close()  # best.gif's replay and GL
     best, best_fitness, best_params, best_cfg = reported_best(
         out, p, record, top, (best, float(best_fitness), best_params)
     )
@@ -262,6 +278,28 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
             print(f"time: {clock['seconds']:.0f} s, {clock['step_seconds']:.3g} s a step, "
                   f"{clock['outside_steps_seconds']:.0f} s outside the steps (timing.json; "
                   "imports not counted)")
+
+
+def compile_ahead(ahead: Warmup, p: Pipeline, cfg: RunConfig, state, greedy_rollout,
+                  key_greedy, gif: bool) -> None:
+    """The programs a run calls after m0's, lowered here and given to `ahead` to compile in the
+    order they are called: the chunks of `cfg`'s sizes, `greedy_rollout`'s, the confirm
+    stage's and best.gif's replay (and its GL probes, on a thread of their own); `state`: the
+    agent state's shapes and placement."""
+    sizes = [min(cfg.chunk, cfg.steps)] + [cfg.steps % cfg.chunk] * (cfg.steps > cfg.chunk)
+    for n in dict.fromkeys(n for n in sizes if n):
+        ahead.compile(f"chunk {n}", lambda n=n: p.agent.chunk.lower(state, n))
+    if greedy_rollout is not None:
+        ahead.compile("greedy", lambda: greedy_rollout.lower(state.learner, state.first,
+                                                             key_greedy))
+    confirms = cfg.confirm > 0 and not get_fitness(cfg.fitness).deterministic
+    if confirms:
+        ahead.compile("confirm", lambda: lower_confirm(p.space, cfg.confirm, p.fitness,
+                                                       cfg.confirm_controllers))
+    if gif and controllers.has_controllers(p.fitness) and jax.process_index() == 0:
+        shown = with_controllers(p.fitness, cfg.confirm_controllers) if confirms else p.fitness
+        ahead.compile("replay", lambda: video.lower_replay(p.space, shown))
+        ahead.run("gl", video.choose_gl)
 
 
 def timing(total: float, chunks: list[tuple[int, float]]) -> dict:

@@ -96,6 +96,20 @@ def evaluate(
     return evaluate_batch(keys, morphs, init_params)
 
 
+def lower_evaluate(space: Space, batch: int, cfg: FitnessConfig, mesh=None) -> list:
+    """The programs `evaluate` compiles for `batch` morphologies of `space` with fresh
+    controllers and one PRNG key (initialising them, if `cfg` has any, and evaluating), lowered
+    for compiling ahead (`warmup`) with the shapes and placements of such a call."""
+    init, evaluate_batch = _compiled(space, cfg, batch_mesh() if mesh is None else mesh)
+    keys = jax.ShapeDtypeStruct((batch, 2), jnp.uint32)
+    morphs = jax.eval_shape(
+        lambda m: jax.tree.map(lambda x: jnp.repeat(x[None], batch, 0), m), space.initial()
+    )
+    if init is None:
+        return [evaluate_batch.lower(keys, morphs, None)]
+    return [init.lower(keys), evaluate_batch.lower(keys, morphs, jax.eval_shape(init, keys))]
+
+
 def _per_morphology_keys(key: jax.Array, batch: int) -> jax.Array:
     key = jnp.asarray(key)
     typed = jnp.issubdtype(key.dtype, jax.dtypes.prng_key)

@@ -129,4 +129,5 @@ def make_greedy_rollout(p: Pipeline):
             params=[p0] + [at(params, i) for i in steps],
         )
 
+    rollout.lower = run.lower  # its program, for compiling ahead (`warmup`)
     return rollout

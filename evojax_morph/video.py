@@ -11,6 +11,7 @@ directory (`python -m evojax_morph.render`).
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import os
 import subprocess
@@ -20,6 +21,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 import mujoco
 import numpy as np
 
@@ -99,7 +101,7 @@ def replay(saved: SavedController, key: jax.Array | None = None, controller: int
     k = saved.fitness.ppo.controllers
     if not 0 <= controller < k:
         raise ValueError(f"controller {controller} out of range: this body has {k} controller(s)")
-    params = saved.params
+    params = jax.device_get(saved.params)  # on the host, placed as `lower_replay` compiles for
     if k > 1:
         params = jax.tree.map(lambda x: x[controller], params)
     key = jax.random.PRNGKey(saved.seed) if key is None else key
@@ -109,6 +111,18 @@ def replay(saved: SavedController, key: jax.Array | None = None, controller: int
     length = int(ended[0]) + 1 if len(ended) else len(done)
     qpos = np.concatenate([qpos0[None], qpos[:length]])
     return Replay(np.asarray(qpos, np.float64), np.asarray(reward[:length], np.float64), dt)
+
+
+def lower_replay(space, fitness):
+    """The program `replay` compiles for a controller of the `fitness` config on `space`,
+    lowered for compiling ahead (`warmup`)."""
+    episode, _ = _episode_fn(space, fitness)
+    one = dataclasses.replace(fitness.ppo, controllers=1)
+    init, _ = ppo.make_train(space, fitness.task, one)
+    key = jax.ShapeDtypeStruct((2,), jnp.uint32)
+    strong = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype)  # noqa: E731 (as read from disk)
+    params = jax.tree.map(strong, jax.eval_shape(init, key))
+    return episode.lower(key, jax.eval_shape(space.initial), params)
 
 
 # --- pictures ---------------------------------------------------------------------------

@@ -1,8 +1,10 @@
 """The run command: bad input, resume and the body log (its PPO smoke run is in
 test_sharding_run.py, on 4 devices, in the slow set)."""
 
+import collections
 import csv
 import json
+import logging
 import shutil
 import sqlite3
 from pathlib import Path
@@ -12,7 +14,7 @@ import numpy as np
 import pytest
 
 import evojax_morph as em
-from evojax_morph import driver, engines, run
+from evojax_morph import driver, engines, run, warmup
 
 TINY = [
     "--space",
@@ -212,3 +214,28 @@ def test_body_log_of_a_run(straight):
     assert max(b["best_fitness"] for b in every) == pytest.approx(summary["best_fitness"])
     assert sum(b["evaluations"] for b in every) == 40
     assert summary["controllers"] == [] and not (straight / "best.gif").exists()
+
+
+def test_a_run_compiles_its_later_programs_ahead(tmp_path, caplog):
+    """The chunks (of 3 steps and of the last 1), the greedy rollout and the confirm stage's
+    fitness call compile on the warmup thread, while m0 is evaluated (they are lowered before):
+    the main thread compiles none of them. (A table fitness: it has draws to confirm, and
+    compiles fast.)"""
+    args = ["--space", "bad_walker", "--fitness", "table", "--num-envs", "4", "--steps", "4",
+            "--chunk", "3", "--explore-steps", "4", "--learning-starts", "8", "--confirm", "2",
+            "--confirm-controllers", "2", "--out", str(tmp_path / "run")]
+    jax.config.update("jax_log_compiles", True)  # in every thread (`jax.log_compiles` in this)
+    try:
+        with caplog.at_level(logging.WARNING, logger="jax"):
+            assert run.main(args) == 0
+    finally:
+        jax.config.update("jax_log_compiles", False)
+    done = "Finished XLA compilation of "  # compiled, or loaded from the persistent cache
+    compiled = collections.Counter(
+        (r.threadName.startswith(warmup.THREAD), r.getMessage()[len(done):].split(" in ")[0])
+        for r in caplog.records if r.getMessage().startswith(done)
+    )
+    later = ["jit(chunk)", "jit(run)", "jit(evaluate)"]  # run: the greedy rollout's program
+    assert [compiled[True, name] for name in later] == [2, 1, 1]
+    assert [compiled[False, name] for name in later] == [0, 0, 0]
+    assert compiled[False, "jit(init)"] == 1  # m0's, on the main thread

@@ -4,6 +4,7 @@ x two controllers, and `em.confirm`'s of two bodies x two controllers in the con
 test; the default set's controllers are fresh ones."""
 
 import dataclasses
+import logging
 import os
 import subprocess
 import sys
@@ -139,6 +140,20 @@ def test_replay_is_the_fitness_evaluation_episode(run_dir):
     assert not np.allclose(replays[0].qpos[-1], replays[1].qpos[-1])  # two controllers
     with pytest.raises(ValueError, match="out of range"):
         em.replay(saved, controller=2)
+
+
+def test_replay_compiles_ahead(run_dir, monkeypatch, caplog):
+    """`video.lower_replay` of the config a run knows before its end (its own) compiles the
+    program that `replay` of the saved controller then calls: the replay compiles no other."""
+    out, p, _, _ = run_dir
+    monkeypatch.setattr(video, "_EPISODE_FNS", {})  # as in a new process
+    with jax.log_compiles(True), caplog.at_level(logging.WARNING, logger="jax"):
+        video.lower_replay(p.space, p.fitness).compile()
+        ahead = len(caplog.records)
+        em.replay(em.load_controller(controllers.body_dir(out, "best")), controller=1)
+    episode = [i for i, r in enumerate(caplog.records)
+               if r.getMessage().startswith("Compiling jit(episode)")]
+    assert len(episode) == 1 and episode[0] < ahead
 
 
 def test_fallback_video_is_small_and_complete(run_dir, tmp_path, monkeypatch):
