@@ -308,10 +308,10 @@ def timing(total: float, chunks: list[tuple[int, float]]) -> dict:
     `execute`'s start (imports excluded); `execute` adds the seconds of its phases (building and
     m0's evaluation, the steps, the greedy rollout, the confirm stage, saving the controllers,
     the plots and summary, best.gif) and `first_chunk_dispatch`, how long the first chunk call
-    takes to return: its host side (tracing, compiling or loading) where JAX dispatches
-    asynchronously, but with MuJoCo Warp on a GPU also most of the step's work, since XLA runs
-    Warp's callbacks on the calling thread (docs/benchmarks.md). A step is
-    timed by the chunks after the first (whose call compiles); None with one chunk or none."""
+    takes to return: its host side (compiling or loading, unless the warmup did) where JAX
+    dispatches asynchronously, but with MuJoCo Warp on a GPU also most of the step's work, since
+    XLA runs Warp's callbacks on the calling thread (docs/benchmarks.md). A step is timed by the
+    chunks after the first (whose call may compile); None with one chunk or none."""
     steps = sum(n for n, _ in chunks)
     step = float(np.median([s / n for n, s in chunks[1:]])) if chunks[1:] else None
     return {"seconds": round(total, 1), "steps": steps, "step_seconds": step and round(step, 3),
