@@ -55,7 +55,12 @@ class Warmup:
         """Lowers now, on this thread, what `lower()` returns (a `jax.stages.Lowered` or a list
         of them), and compiles it ahead."""
         if self.on:
-            lowered = lower()
+            try:
+                lowered = lower()
+            except Exception as e:  # warned of at `wait`, like a failed compile
+                self._jobs[name] = Future()
+                self._jobs[name].set_exception(e)
+                return
             self._jobs[name] = self._pool.submit(_compile, lowered)
 
     def run(self, name: str, fn: Callable) -> None:

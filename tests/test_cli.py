@@ -7,6 +7,7 @@ import json
 import logging
 import shutil
 import sqlite3
+import sys
 from pathlib import Path
 
 import jax
@@ -239,3 +240,23 @@ def test_a_run_compiles_its_later_programs_ahead(tmp_path, caplog):
     assert [compiled[True, name] for name in later] == [2, 1, 1]
     assert [compiled[False, name] for name in later] == [0, 0, 0]
     assert compiled[False, "jit(init)"] == 1  # m0's, on the main thread
+
+
+def test_a_failed_warmup_job_only_warns():
+    """A program that fails to lower or compile ahead warns at `wait` (its call then does the
+    work); `close` leaves the GIL's switch interval as it was."""
+
+    class Unlowerable:
+        def compile(self):
+            raise RuntimeError("no program")
+
+    before = sys.getswitchinterval()
+    ahead = warmup.Warmup(on=True)
+    assert sys.getswitchinterval() == pytest.approx(warmup.SWITCH_INTERVAL)
+    ahead.compile("lower", lambda: 1 / 0)
+    ahead.compile("compile", lambda: [Unlowerable()])
+    for name, why in (("lower", "ZeroDivisionError"), ("compile", "RuntimeError: no program")):
+        with pytest.warns(RuntimeWarning, match=f"warmup: {name} failed ahead \\({why}"):
+            ahead.wait(name)
+    ahead.close()
+    assert sys.getswitchinterval() == before
