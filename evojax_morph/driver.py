@@ -156,8 +156,6 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
         x.shape, x.dtype, sharding=replicated(batch_mesh()), weak_type=x.weak_type
     )
     abstract = jax.tree.map(on_mesh, jax.eval_shape(p.agent.init, key_init))
-    greedy_rollout = None if p.agent.scores is None else make_greedy_rollout(p)
-    compile_ahead(ahead, p, cfg, abstract, greedy_rollout, key_greedy, gif)  # while m0 runs
     rows = []
     step = state = None
     if resume:
@@ -171,6 +169,8 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
             write_config()
     ocp, manager = checkpoint_manager(out)
     log_bodies = bodylog.BodyLog(out / "bodies.sqlite", p.space) if lead else None
+    greedy_rollout = None if p.agent.scores is None else make_greedy_rollout(p)
+    compile_ahead(ahead, p, cfg, step or 0, abstract, greedy_rollout, key_greedy, gif)  # during m0
     if step is not None:
         with open(out / "metrics.csv") as f:
             rows = [r for r in csv.DictReader(f) if int(r["step"]) <= step]
@@ -280,14 +280,14 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
                   "imports not counted)")
 
 
-def compile_ahead(ahead: Warmup, p: Pipeline, cfg: RunConfig, state, greedy_rollout,
+def compile_ahead(ahead: Warmup, p: Pipeline, cfg: RunConfig, start: int, state, greedy_rollout,
                   key_greedy, gif: bool) -> None:
     """The programs a run calls after m0's, lowered here and given to `ahead` to compile in the
-    order they are called: the chunks of `cfg`'s sizes, `greedy_rollout`'s, the confirm
-    stage's and best.gif's replay (and its GL probes, on a thread of their own); `state`: the
-    agent state's shapes and placement."""
-    sizes = [min(cfg.chunk, cfg.steps)] + [cfg.steps % cfg.chunk] * (cfg.steps > cfg.chunk)
-    for n in dict.fromkeys(n for n in sizes if n):
+    order they are called: the chunks of the sizes the steps from `start` take,
+    `greedy_rollout`'s, the confirm stage's and best.gif's replay (and its GL probes, on a
+    thread of their own); `state`: the agent state's shapes and placement."""
+    sizes = [min(cfg.chunk, cfg.steps - s) for s in range(start, cfg.steps, cfg.chunk)]
+    for n in dict.fromkeys(sizes):
         ahead.compile(f"chunk {n}", lambda n=n: p.agent.chunk.lower(state, n))
     if greedy_rollout is not None:
         ahead.compile("greedy", lambda: greedy_rollout.lower(state.learner, state.first,
