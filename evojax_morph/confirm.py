@@ -59,11 +59,7 @@ def t_interval(values: np.ndarray, level: float = 0.95) -> tuple[float, float]:
 def lower_confirm(space: Space, bodies: int, cfg: FitnessConfig, controllers: int,
                   mesh=None) -> list:
     """The programs `confirm` compiles for `bodies` bodies, lowered for compiling ahead."""
-    return lower_evaluate(space, bodies * controllers, _one_controller(cfg), mesh)
-
-
-def _one_controller(cfg: FitnessConfig) -> FitnessConfig:
-    return dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, controllers=1))
+    return lower_evaluate(space, bodies * controllers, cfg.with_controllers(1), mesh)
 
 
 def confirm(
@@ -97,7 +93,7 @@ def confirm(
     if controllers < 2:
         raise ValueError(f"confirm needs at least 2 controllers per body, got {controllers}")
     n = morphs.active.shape[0]
-    one = _one_controller(cfg)
+    one = cfg.with_controllers(1)
     copies = jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x), controllers, axis=0), morphs)
     res = to_host(evaluate(space, copies, key, one, mesh=mesh))
     per_body = lambda x: np.asarray(x).reshape((n, controllers) + x.shape[1:])  # noqa: E731

@@ -297,7 +297,7 @@ def compile_ahead(ahead: Warmup, p: Pipeline, cfg: RunConfig, start: int, state,
         ahead.compile("confirm", lambda: lower_confirm(p.space, cfg.confirm, p.fitness,
                                                        cfg.confirm_controllers))
     if gif and controllers.has_controllers(p.fitness) and jax.process_index() == 0:
-        shown = with_controllers(p.fitness, cfg.confirm_controllers) if confirms else p.fitness
+        shown = p.fitness.with_controllers(cfg.confirm_controllers) if confirms else p.fitness
         ahead.compile("replay", lambda: video.lower_replay(p.space, shown))
         ahead.run("gl", video.choose_gl)
 
@@ -331,7 +331,7 @@ def reported_best(out: Path, p: Pipeline, record: dict, top: Confirmed | None, d
         if top.params is not None:
             order = np.argsort(-top.values, kind="stable")
             params = jax.tree.map(lambda x: x[order], top.params)
-            cfg = with_controllers(p.fitness, len(top.values))
+            cfg = p.fitness.with_controllers(len(top.values))
         return top.morph, top.mean, params, cfg
     if record["confirmed"]:
         morph = Morphology.from_dict(record["best_morphology"])
@@ -340,11 +340,6 @@ def reported_best(out: Path, p: Pipeline, record: dict, top: Confirmed | None, d
         kept = controllers.load(out / controllers.DIR / "best")
         return morph, record["confirmed"][0]["mean"], kept.params, kept.fitness
     return (*draw, p.fitness)
-
-
-def with_controllers(cfg, k: int):
-    """`cfg` with K = `k` controllers per body."""
-    return dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, controllers=k))
 
 
 def confirm_stage(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print):

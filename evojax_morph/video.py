@@ -11,7 +11,6 @@ directory (`python -m evojax_morph.render`).
 
 from __future__ import annotations
 
-import dataclasses
 import importlib
 import os
 import subprocess
@@ -117,8 +116,7 @@ def lower_replay(space, fitness):
     """The program `replay` compiles for a controller of the `fitness` config on `space`,
     lowered for compiling ahead (`warmup`)."""
     episode, _ = _episode_fn(space, fitness)
-    one = dataclasses.replace(fitness.ppo, controllers=1)
-    init, _ = ppo.make_train(space, fitness.task, one)
+    init, _ = ppo.make_train(space, fitness.task, fitness.with_controllers(1).ppo)
     key = jax.ShapeDtypeStruct((2,), jnp.uint32)
     strong = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype)  # noqa: E731 (as read from disk)
     params = jax.tree.map(strong, jax.eval_shape(init, key))

@@ -49,6 +49,10 @@ class FitnessConfig:
             )
         get_fitness(self.kind).validate(self)
 
+    def with_controllers(self, k: int) -> FitnessConfig:
+        """This config with K = `k` controllers per body."""
+        return dataclasses.replace(self, ppo=dataclasses.replace(self.ppo, controllers=k))
+
     def to_dict(self) -> dict:
         """JSON-ready settings; `from_dict` rebuilds the same config."""
         return dataclasses.asdict(self)
