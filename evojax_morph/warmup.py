@@ -10,11 +10,14 @@ that each call finds its program in JAX's caches (tests/test_cli.py checks that 
 compiles none of them). They are the programs the calls would compile themselves: no result
 changes. `EVOJAX_MORPH_WARMUP=0` turns it off.
 
-Why lower first, on the main thread: tracing a program that steps on MuJoCo Warp runs Warp's
-Python (it loads Warp modules for the device it finds), and doing so on a second thread while
-the device runs Warp's callbacks crashed Warp on a GPU (an H100, 2026-11-25: a segmentation
-fault, or `'NoneType' object has no attribute 'wp_compile_cpp'` in a callback). XLA's compiling
-runs no Warp code.
+Why lower first, on the main thread: lowering a program that steps on MuJoCo Warp copies
+arrays to the device (MJX's `put_model` and `make_data` for Warp), and a Warp call of the
+running program captures a CUDA graph of XLA's stream whenever it meets new buffer addresses.
+Device work from another thread during a capture breaks it (`Warp CUDA error 904: capturing
+stream has unjoined work`, then a segmentation fault: `experiments/warp_thread_race.py`).
+Lowered on the second thread, 2 of 4 GPU runs (both cold) died of a segmentation fault after
+their steps; compiling alone there crashed none of 3 (H100, 2026-11-25; docs/benchmarks.md,
+"The later programs compiled while m0 runs").
 """
 
 from __future__ import annotations
