@@ -17,7 +17,7 @@ Device work from another thread during a capture breaks it (`Warp CUDA error 904
 stream has unjoined work`, then a segmentation fault: `experiments/warp_thread_race.py`).
 Lowered on the second thread, 2 of 4 GPU runs (both cold) died of a segmentation fault after
 their steps; compiling alone there crashed none of 3 (H100, 2026-11-25; docs/benchmarks.md,
-"The later programs compiled while m0 runs").
+"Lowering on the second thread, tried again").
 """
 
 from __future__ import annotations
