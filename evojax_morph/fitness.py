@@ -104,7 +104,7 @@ def lower_evaluate(space: Space, batch: int, cfg: FitnessConfig, mesh=None) -> l
     init, evaluate_batch = _compiled(space, cfg, batch_mesh() if mesh is None else mesh)
     keys = jax.ShapeDtypeStruct((batch, 2), jnp.uint32)
     morphs = jax.eval_shape(
-        lambda m: jax.tree.map(lambda x: jnp.repeat(x[None], batch, 0), m), space.initial()
+        lambda: jax.tree.map(lambda x: jnp.repeat(x[None], batch, 0), space.initial())
     )
     if init is None:
         return [evaluate_batch.lower(keys, morphs, None)]
