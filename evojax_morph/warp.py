@@ -33,8 +33,10 @@ recomputed from the capsule sizes.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -56,6 +58,11 @@ def available() -> tuple[bool, str]:
     platform = jax.devices()[0].platform
     if platform not in ("gpu", "cpu"):
         return False, f"MuJoCo Warp runs on a CUDA GPU or the CPU, not on {platform}"
+    if platform == "cpu":
+        import warp
+
+        if not warp.is_cpu_available():  # a warp-lang without its LLVM (seen on a GPU host)
+            return False, "warp-lang here cannot compile CPU kernels (no LLVM)"
     return True, ""
 
 
@@ -109,6 +116,21 @@ def _apply_determinism() -> None:
         module = importlib.import_module(f"mujoco.mjx.warp.{name}")
         if hasattr(module, "_o"):
             module._o.deterministic = flag
+
+
+def callback_lock():
+    """The lock Warp's JAX calls run under, or a null context while warp-lang is not loaded (no
+    Warp call can run then); `put_model` and `make_worlds` hold it. MJX's `put_model` and
+    `make_data` for Warp build MuJoCo Warp's host copy under `wp.ScopedDevice("cpu")`, which
+    makes Warp's CPU device the default device of the whole process while they run; a Warp call
+    running meanwhile on another thread would launch its kernels there (it crashed so on a GPU
+    while a run's warmup thread traced a program, `warmup`). Private to warp-lang 1.19: on a
+    version without it, the ImportError says so."""
+    if "warp" not in sys.modules:
+        return contextlib.nullcontext()
+    from warp._src.jax.ffi import _FFI_CALLBACK_LOCK
+
+    return _FFI_CALLBACK_LOCK
 
 
 def _require() -> None:
@@ -193,7 +215,8 @@ def put_model(mj_model: mujoco.MjModel, graph_mode=None) -> mjx.Model:
         from mujoco.mjx.warp.types import GraphMode
 
         graph_mode = GraphMode[os.environ["EVOJAX_MORPH_WARP_GRAPH"].upper()]
-    model = mjx.put_model(mj_model, impl="warp", graph_mode=graph_mode)
+    with callback_lock():
+        model = mjx.put_model(mj_model, impl="warp", graph_mode=graph_mode)
     # Warp prints a warning for each step whose solver hits its iteration budget: ours is small
     # on purpose (BodyPlan.iterations), so these would flood the output.
     return model.replace(opt=model.opt.replace(_impl=model.opt._impl.replace(warn_overflow=0)))
@@ -240,7 +263,9 @@ def make_worlds(
     naconmax_per_world = contacts if naconmax_per_world is None else naconmax_per_world
     njmax = rows if njmax is None else njmax
     mj_model = space.template if mj_model is None else mj_model
-    data = mjx.make_data(mj_model, impl="warp", naconmax=naconmax_per_world * worlds, njmax=njmax)
+    with callback_lock():
+        data = mjx.make_data(mj_model, impl="warp", naconmax=naconmax_per_world * worlds,
+                             njmax=njmax)
     # Data's own vmap rule batches the per-world fields and keeps the contact pool shared.
     return jax.vmap(lambda _: data)(jnp.arange(worlds))
 

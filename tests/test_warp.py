@@ -31,8 +31,9 @@ requires_warp = pytest.mark.skipif(not WARP_OK, reason=f"MuJoCo Warp: {WARP_REAS
 # Warp (float32) vs the JAX impl (float32), max |qpos difference| over the first 5 steps of
 # these 3 bodies x 2 envs, measured on this CPU: 7.3e-8 (Bad Walker), 9.7e-8 (Constructor),
 # 2.5e-8 (Length Walker), qpos up to 0.09; 30x the largest here. A world stepping another
-# body (the nested-vmap bug) moves by at least 1.9e-2.
-WARP_TOL = 3e-6
+# body (the nested-vmap bug) moves by at least 1.9e-2. On an H100 (2026-11-26) the JAX impl's
+# float32 differs more: 8.4e-5 (Constructor), under 3e-6 (the others); 12x that there.
+WARP_TOL = 3e-6 if jax.default_backend() == "cpu" else 1e-3
 
 
 @functools.cache  # the tests of a space share its bodies and their one specialisation program
@@ -317,6 +318,10 @@ def test_set_deterministic_reaches_mujoco_warp():
     package behind MJX sort each world's contacts (its CONTACTS determinism), and off it does
     not; the worlds step alike either way (sorting reorders contacts, not their forces). In a
     subprocess: the package replaces the vendored copy only before MJX is first imported."""
+    import warp
+
+    if not warp.is_cpu_available():  # the subprocess runs on the CPU
+        pytest.skip("warp-lang here cannot compile CPU kernels (no LLVM)")
     env = dict(os.environ, EVOJAX_MORPH_MUJOCO_WARP="package", JAX_PLATFORMS="cpu")
     proc = subprocess.run([sys.executable, "-c", DETERMINISM_CHECK], env=env,
                           capture_output=True, text=True)
