@@ -170,8 +170,12 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
     ocp, manager = checkpoint_manager(out)
     log_bodies = bodylog.BodyLog(out / "bodies.sqlite", p.space) if lead else None
     greedy_rollout = None if p.agent.scores is None else make_greedy_rollout(p)
-    compile_ahead(ahead, p, cfg, step or 0, abstract, greedy_rollout, key_greedy, gif)  # during m0
+    # Lowered on the warmup thread while m0 compiles and runs, and compiled there unless Warp
+    # runs on a GPU, where a compile's autotuning breaks a Warp call's graph capture (`warmup`)
+    ahead.compiles = not (cfg.physics == "warp" and jax.default_backend() == "gpu")
+    compile_ahead(ahead, p, cfg, step or 0, abstract, greedy_rollout, key_greedy, gif)
     if step is not None:
+        ahead.start()
         with open(out / "metrics.csv") as f:
             rows = [r for r in csv.DictReader(f) if int(r["step"]) <= step]
         if lead:
@@ -179,7 +183,9 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
         log(f"resumed at step {step}")
     else:
         log("evaluating m0 in every evolution...")
-        state = p.agent.init(key_init)
+        m0 = p.agent.init.lower(key_init)
+        ahead.start()  # after m0's lowering: the two would take turns at the GIL
+        state = m0.compile()(key_init)
         step = 0
         first = to_host(state.first)
         if lead:
@@ -282,8 +288,8 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
 
 def compile_ahead(ahead: Warmup, p: Pipeline, cfg: RunConfig, start: int, state, greedy_rollout,
                   key_greedy, gif: bool) -> None:
-    """The programs a run calls after m0's, lowered here and given to `ahead` to compile in the
-    order they are called: the chunks of the sizes the steps from `start` take,
+    """The programs a run calls after m0's, given to `ahead` to lower and compile in the order
+    they are called: the chunks of the sizes the steps from `start` take,
     `greedy_rollout`'s, the confirm stage's and best.gif's replay (and its GL probes, on a
     thread of their own); `state`: the agent state's shapes and placement."""
     sizes = [min(cfg.chunk, cfg.steps - s) for s in range(start, cfg.steps, cfg.chunk)]

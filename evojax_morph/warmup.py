@@ -1,23 +1,27 @@
-"""A run's later programs compiled on a second thread while its first one runs.
+"""A run's later programs lowered and compiled on a second thread while its first one runs.
 
 After m0's evaluation a run calls four more compiled programs: a chunk of steps, the greedy
 rollout, the confirm stage's fitness call and best.gif's replay. Before its first call each one
 costs the host seconds: tracing and lowering it, then compiling it (or, with a warm persistent
 cache, loading it). Meanwhile m0's evaluation, a step's worth of work, keeps the device busy and
-the host idle. The run lowers the later programs before m0's evaluation starts, for the shapes
-and placements their calls will have, and `Warmup` compiles them on one thread while it runs, so
-that each call finds its program in JAX's caches (tests/test_cli.py checks that the main thread
-compiles none of them). They are the programs the calls would compile themselves: no result
-changes. `EVOJAX_MORPH_WARMUP=0` turns it off.
+the host mostly idle. The run queues the later programs before m0's evaluation, for the shapes
+and placements their calls will have, and `Warmup` lowers them on one thread once m0's program
+is lowered (`start`), and compiles them there too unless MuJoCo Warp runs on a GPU, so that each
+call finds its program in JAX's caches (tests/test_cli.py checks by thread). They are the
+programs the calls would compile themselves: no result changes. `EVOJAX_MORPH_WARMUP=0` turns
+it off.
 
-Why lower first, on the main thread: lowering a program that steps on MuJoCo Warp copies
-arrays to the device (MJX's `put_model` and `make_data` for Warp), and a Warp call of the
-running program captures a CUDA graph of XLA's stream whenever it meets new buffer addresses.
-Device work from another thread during a capture breaks it (`Warp CUDA error 904: capturing
-stream has unjoined work`, then a segmentation fault: `experiments/warp_thread_race.py`).
-Lowered on the second thread, 2 of 4 GPU runs (both cold) died of a segmentation fault after
-their steps; compiling alone there crashed none of 3 (H100, 2026-11-25; docs/benchmarks.md,
-"Lowering on the second thread, tried again").
+Why not compile on the thread with Warp on a GPU: a Warp call captures a CUDA graph of XLA's
+stream whenever it meets new buffer addresses, and a compile that misses the persistent cache
+autotunes on that stream; one during the other breaks the capture (`Warp CUDA error 901`, then
+an error or an abort: `experiments/warp_thread_race.py compile` died so in 2 of 2 runs on an
+H100). Holding Warp's call lock while compiling deadlocked instead (the Warp call waits for the
+lock, the compile for the device), and Warp's JAX graph mode fails outright. So `wait` compiles
+such a program on the calling thread, where no Warp call can be running: XLA runs them inside
+the call that made them. Lowering launches no kernel and survived (`lower` mode: 3 of 3 runs,
+21 to 23 lowerings during 30 calls). The MJX functions it runs that set Warp's default device
+for the whole process hold Warp's call lock (`evojax_morph.warp.callback_lock`).
+docs/benchmarks.md, "Compiling on the second thread breaks Warp's graph capture".
 """
 
 from __future__ import annotations
@@ -42,29 +46,44 @@ def enabled() -> bool:
 
 class Warmup:
     """Jobs run ahead, by name: `compile(name, lower)` on the compiling thread, in the order
-    given; `run(name, fn)` on a thread of its own (a subprocess probe, say); `wait(name)` before
-    the call that needs the job's result. A job that fails only warns: its call then compiles
-    the program itself, as without the warmup."""
+    given, once `start` is called; `run(name, fn)` on a thread of its own (a subprocess probe,
+    say); `wait(name)` before the call that needs the job's result. `compiles` False: the
+    thread only lowers, and `wait` compiles. A job that fails only warns: its call then
+    compiles the program itself, as without the warmup."""
 
-    def __init__(self, on: bool | None = None):
+    def __init__(self, on: bool | None = None, compiles: bool = True):
         self.on = enabled() if on is None else on
+        self.compiles = compiles
         self._jobs: dict[str, Future] = {}
+        self._lowering: set[str] = set()  # the names of `compile`'s jobs
+        self._go = threading.Event()  # `start`
+        self._dropped = False  # `close(wait=False)`: the jobs not begun return at once
         self._pool = ThreadPoolExecutor(1, thread_name_prefix=THREAD) if self.on else None
         self._interval = sys.getswitchinterval()
         if self.on:
             sys.setswitchinterval(SWITCH_INTERVAL)
 
     def compile(self, name: str, lower: Callable) -> None:
-        """Lowers now, on this thread, what `lower()` returns (a `jax.stages.Lowered` or a list
-        of them), and compiles it ahead."""
+        """Calls `lower()` on the compiling thread once `start` is called, and compiles what it
+        returns (a `jax.stages.Lowered` or a list of them) there, or at `wait`."""
         if self.on:
-            try:
-                lowered = lower()
-            except Exception as e:  # warned of at `wait`, like a failed compile
-                self._jobs[name] = Future()
-                self._jobs[name].set_exception(e)
-                return
-            self._jobs[name] = self._pool.submit(_compile, lowered)
+            self._jobs[name] = self._pool.submit(self._lower, lower)
+            self._lowering.add(name)
+
+    def start(self) -> None:
+        """Lets the compiling thread begin (`wait` and `close` do too)."""
+        self._go.set()
+
+    def _lower(self, lower: Callable) -> list:
+        self._go.wait()
+        if self._dropped:
+            return []
+        lowered = lower()
+        lowered = lowered if isinstance(lowered, list) else [lowered]
+        if self.compiles:
+            for one in lowered:
+                one.compile()
+        return lowered
 
     def run(self, name: str, fn: Callable) -> None:
         """Calls `fn()` ahead, on a thread of its own."""
@@ -75,11 +94,15 @@ class Warmup:
 
     def wait(self, name: str) -> None:
         """Returns once job `name` is done (at once if there is none)."""
+        self.start()
         job = self._jobs.pop(name, None)
         if job is None:
             return
         try:
-            job.result()
+            result = job.result()
+            if name in self._lowering and not self.compiles:
+                for one in result:
+                    one.compile()
         except Exception as e:  # the call compiles it instead
             warnings.warn(f"warmup: {name} failed ahead ({type(e).__name__}: {e}); its call "
                           "does the work", RuntimeWarning, stacklevel=2)
@@ -87,6 +110,8 @@ class Warmup:
     def close(self, wait: bool = True) -> None:
         """Waits for every job (or, `wait` False, drops those not begun); then the thread is
         gone and the GIL's interval as it was."""
+        self._dropped = not wait
+        self.start()
         if wait:
             for name in list(self._jobs):
                 self.wait(name)
@@ -94,11 +119,6 @@ class Warmup:
             self._pool.shutdown(wait=wait, cancel_futures=True)
             sys.setswitchinterval(self._interval)
             self.on = False
-
-
-def _compile(lowered) -> None:
-    for one in lowered if isinstance(lowered, list) else [lowered]:
-        one.compile()
 
 
 def _fill(job: Future, fn: Callable) -> None:

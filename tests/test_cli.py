@@ -2,6 +2,7 @@
 test_sharding_run.py, on 4 devices, in the slow set)."""
 
 import collections
+import concurrent.futures
 import csv
 import json
 import logging
@@ -11,6 +12,7 @@ import sys
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -217,10 +219,22 @@ def test_body_log_of_a_run(straight):
     assert summary["controllers"] == [] and not (straight / "best.gif").exists()
 
 
+def _by_thread(records, done: str) -> collections.Counter:
+    """(on the warmup thread, program name) -> how many of `records` begin with `done`."""
+    return collections.Counter(
+        (r.threadName.startswith(warmup.THREAD), r.getMessage()[len(done):].split(" in ")[0])
+        for r in records if r.getMessage().startswith(done)
+    )
+
+
+LOWERED = "Finished jaxpr to MLIR module conversion "
+COMPILED = "Finished XLA compilation of "  # compiled, or loaded from the persistent cache
+
+
 def test_a_run_compiles_its_later_programs_ahead(tmp_path, caplog):
     """The chunks (of 3 steps and of the last 1), the greedy rollout and the confirm stage's
-    fitness call compile on the warmup thread, while m0 is evaluated (they are lowered before):
-    the main thread compiles none of them. (A table fitness: it has draws to confirm, and
+    fitness call are lowered and compiled on the warmup thread, while m0 is evaluated: the main
+    thread lowers and compiles none of them. (A table fitness: it has draws to confirm, and
     compiles fast.)"""
     args = ["--space", "bad_walker", "--fitness", "table", "--num-envs", "4", "--steps", "4",
             "--chunk", "3", "--explore-steps", "4", "--learning-starts", "8", "--confirm", "2",
@@ -231,27 +245,62 @@ def test_a_run_compiles_its_later_programs_ahead(tmp_path, caplog):
             assert run.main(args) == 0
     finally:
         jax.config.update("jax_log_compiles", False)
-    done = "Finished XLA compilation of "  # compiled, or loaded from the persistent cache
-    compiled = collections.Counter(
-        (r.threadName.startswith(warmup.THREAD), r.getMessage()[len(done):].split(" in ")[0])
-        for r in caplog.records if r.getMessage().startswith(done)
-    )
     later = ["jit(chunk)", "jit(run)", "jit(evaluate)"]  # run: the greedy rollout's program
-    assert [compiled[True, name] for name in later] == [2, 1, 1]
-    assert [compiled[False, name] for name in later] == [0, 0, 0]
-    assert compiled[False, "jit(init)"] == 1  # m0's, on the main thread
+    for done in (LOWERED, COMPILED):
+        by_thread = _by_thread(caplog.records, done)
+        assert [by_thread[True, name] for name in later] == [2, 1, 1], done
+        assert [by_thread[False, name] for name in later] == [0, 0, 0], done
+        assert by_thread[False, "jit(init)"] == 1, done  # m0's, on the main thread
 
 
-def test_a_failed_warmup_job_only_warns():
+def test_with_warp_on_a_gpu_the_warmup_thread_only_lowers(caplog):
+    """`compiles` False (what a run sets with MuJoCo Warp on a GPU): the thread lowers, `wait`
+    compiles on the calling thread, and the call finds the program compiled."""
+
+    def warmup_probe(x):  # a program of its own name, compiled nowhere else
+        return jnp.sin(x) * 3.0 + 1.0
+
+    f, x = jax.jit(warmup_probe), jnp.arange(7.0)
+    ahead = warmup.Warmup(on=True, compiles=False)
+    jax.config.update("jax_log_compiles", True)
+    try:
+        with caplog.at_level(logging.WARNING, logger="jax"):
+            ahead.compile("probe", lambda: f.lower(x))
+            ahead.wait("probe")
+            np.testing.assert_allclose(f(x), np.sin(np.arange(7.0)) * 3 + 1, rtol=1e-6)
+    finally:
+        jax.config.update("jax_log_compiles", False)
+        ahead.close()
+    name = "jit(warmup_probe)"
+    assert _by_thread(caplog.records, LOWERED) == {(True, name): 1}
+    assert _by_thread(caplog.records, COMPILED) == {(False, name): 1}
+
+
+def test_a_warmup_closed_on_an_error_lowers_nothing_more():
+    """`close(wait=False)` (a run that failed) drops the jobs: the one already waiting for
+    `start` on the thread returns without lowering, the others are cancelled."""
+    called = []
+    ahead = warmup.Warmup(on=True)
+    for name in "ab":
+        ahead.compile(name, lambda name=name: called.append(name))
+    jobs = list(ahead._jobs.values())
+    ahead.close(wait=False)
+    concurrent.futures.wait(jobs, timeout=10)
+    assert all(job.done() for job in jobs) and called == []
+
+
+@pytest.mark.parametrize("compiles", [True, False])
+def test_a_failed_warmup_job_only_warns(compiles):
     """A program that fails to lower or compile ahead warns at `wait` (its call then does the
-    work); `close` leaves the GIL's switch interval as it was."""
+    work), whether the thread compiles it or `wait` does; `close` leaves the GIL's switch
+    interval as it was."""
 
     class Unlowerable:
         def compile(self):
             raise RuntimeError("no program")
 
     before = sys.getswitchinterval()
-    ahead = warmup.Warmup(on=True)
+    ahead = warmup.Warmup(on=True, compiles=compiles)
     assert sys.getswitchinterval() == pytest.approx(warmup.SWITCH_INTERVAL)
     ahead.compile("lower", lambda: 1 / 0)
     ahead.compile("compile", lambda: [Unlowerable()])
