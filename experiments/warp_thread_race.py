@@ -7,18 +7,20 @@ and appends a JSON line to OUT/race.jsonl: the seconds of a call alone and with 
 work, how many rounds the thread made, whether the fitness stayed finite. MODE:
 
   put          `warp.put_model` and `warp.make_worlds`, as a trace of a Warp program does (both
-               copy arrays to the device);
-  put_locked   the same, holding the lock Warp's JAX callbacks run under;
+               copy arrays to the device; since 2026-11-26 they hold Warp's call lock while
+               in MJX, the `put_locked` mode of docs/benchmarks.md);
   lower        lowers the evaluation of a new batch size each round (`fitness.lower_evaluate`),
-               as a run's warmup thread would;
+               as a run's warmup thread does;
   compile      compiles such programs, lowered beforehand on the main thread, with the
-               persistent cache off, as the warmup thread does in a cold run (XLA autotunes on
-               the device).
+               persistent cache off, as a warmup thread would in a cold run (XLA autotunes on
+               the device);
+  compile_locked   the same, holding the lock Warp's JAX callbacks run under (on an H100 it
+               deadlocks: the callback waits for the lock, the compile for the device).
 
 On a GPU the process may die instead (no line; see its output): a Warp call captures a CUDA graph
 of XLA's stream the first time it meets new buffer addresses, and device work from another
 thread during that capture breaks it (docs/benchmarks.md, "Lowering on the second thread, tried
-again").
+again" and "Compiling on the second thread breaks Warp's graph capture").
 
   python -m experiments.warp_thread_race put OUT       # GPU, 256 bodies, 10,000 PPO steps
   python -m experiments.warp_thread_race compile OUT --calls 10
@@ -58,22 +60,22 @@ def main(mode: str, out: str, batch: int, train_steps: int, calls: int) -> None:
     alone_s = time.perf_counter() - t
 
     held = contextlib.nullcontext()
-    if mode == "put_locked":
-        from warp._src.jax.ffi import _FFI_CALLBACK_LOCK as held
+    if mode == "compile_locked":
+        held = ew.callback_lock()
     sizes = iter(range(batch + 1, batch + 1000))  # batch sizes not compiled before
-    if mode == "compile":  # lowered now, compiled by the thread
+    if mode.startswith("compile"):  # lowered now, compiled by the thread
         lowered = [one for _ in range(8) for one in lower_evaluate(space, next(sizes), cfg)]
         jax.config.update("jax_enable_compilation_cache", False)
 
     def one_round(i: int) -> bool:  # False: nothing left to do
-        if mode in ("put", "put_locked"):
-            with held:
-                ew.put_model(space.template)
-                ew.make_worlds(space, 8)
+        if mode == "put":
+            ew.put_model(space.template)
+            ew.make_worlds(space, 8)
         elif mode == "lower":
             lower_evaluate(space, next(sizes), cfg)
         elif i < len(lowered):
-            lowered[i].compile()
+            with held:
+                lowered[i].compile()
         else:
             return False
         return True
@@ -84,7 +86,7 @@ def main(mode: str, out: str, batch: int, train_steps: int, calls: int) -> None:
     def work():
         while not stop.is_set() and one_round(rounds[0]):
             rounds[0] += 1
-            time.sleep(1e-3)  # lets a callback waiting on `put_locked`'s lock take it
+            time.sleep(1e-3)  # lets a callback waiting on Warp's call lock take it
 
     thread = threading.Thread(target=work, daemon=True)
     thread.start()
@@ -106,7 +108,8 @@ def main(mode: str, out: str, batch: int, train_steps: int, calls: int) -> None:
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("mode", choices=["put", "put_locked", "lower", "compile"])
+    parser.add_argument("mode",
+                        choices=["put", "lower", "compile", "compile_locked"])
     parser.add_argument("out")
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--train-steps", type=int, default=10_000)
