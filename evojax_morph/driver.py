@@ -119,7 +119,9 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     """Runs `cfg` in the directory `out` (checked writable), from its last checkpoint if
     `resume`, drawing best.gif at the end if `gif`; every process calls it, process 0 writes
     the files and prints. The programs called after m0's compile ahead (`compile_ahead`)."""
-    ahead = Warmup()
+    # Lowered on the warmup thread while m0 compiles and runs, and compiled there unless Warp
+    # runs on a GPU, where a compile's autotuning breaks a Warp call's graph capture (`warmup`)
+    ahead = Warmup(compiles=not (cfg.physics == "warp" and jax.default_backend() == "gpu"))
     try:
         _execute(cfg, out, resume, gif, ahead)
     finally:
@@ -170,9 +172,6 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
     ocp, manager = checkpoint_manager(out)
     log_bodies = bodylog.BodyLog(out / "bodies.sqlite", p.space) if lead else None
     greedy_rollout = None if p.agent.scores is None else make_greedy_rollout(p)
-    # Lowered on the warmup thread while m0 compiles and runs, and compiled there unless Warp
-    # runs on a GPU, where a compile's autotuning breaks a Warp call's graph capture (`warmup`)
-    ahead.compiles = not (cfg.physics == "warp" and jax.default_backend() == "gpu")
     compile_ahead(ahead, p, cfg, step or 0, abstract, greedy_rollout, key_greedy, gif)
     if step is not None:
         ahead.start()
