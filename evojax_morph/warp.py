@@ -133,6 +133,53 @@ def callback_lock():
     return _FFI_CALLBACK_LOCK
 
 
+def count_stream_registrations() -> None:
+    """Makes warp-lang count its registrations of an external CUDA stream (idempotent).
+
+    Each Warp call from JAX wraps XLA's stream in a new `wp.Stream`, which enters the handle in
+    a native table; any such object that dies erases the entry, however many others still use
+    the handle (warp-lang 1.19, and its main branch of 2026-08: `wp_cuda_stream_unregister` in
+    warp.cu). One that outlives its call and is collected during a later call (by the cyclic
+    garbage collector, whenever the call allocates) takes the entry from under that call, whose
+    graph capture then fails: `Warp error: unknown stream` (seen on an H100, in a process that
+    steps a second Warp program after a first). Counted, the native entry is made at the first
+    registration of a handle and erased at its last unregistration."""
+    import ctypes
+    import threading
+
+    import warp as wp
+
+    wp.init()
+    core = wp._src.context.runtime.core
+    register, unregister = core.wp_cuda_stream_register, core.wp_cuda_stream_unregister
+    if getattr(register, "counted", False):
+        return
+    refs: dict = {}
+    lock = threading.RLock()  # a collection inside a registration re-enters on the same thread
+    key = lambda context, stream: tuple(
+        x.value if isinstance(x, ctypes.c_void_p) else x for x in (context, stream)
+    )
+
+    def counted_register(context, stream):
+        with lock:
+            k = key(context, stream)
+            refs[k] = refs.get(k, 0) + 1
+            if refs[k] == 1:
+                register(context, stream)
+
+    def counted_unregister(context, stream):
+        with lock:
+            k = key(context, stream)
+            refs[k] = refs.get(k, 0) - 1
+            if refs[k] <= 0:
+                del refs[k]
+                unregister(context, stream)
+
+    counted_register.counted = True
+    core.wp_cuda_stream_register = counted_register
+    core.wp_cuda_stream_unregister = counted_unregister
+
+
 def _require() -> None:
     ok, reason = available()
     if not ok:
@@ -211,6 +258,7 @@ def put_model(mj_model: mujoco.MjModel, graph_mode=None) -> mjx.Model:
     for benchmarks), else MJX's default: WARP (Warp's own CUDA graph per call) on a GPU."""
     _require()
     _apply_determinism()
+    count_stream_registrations()
     if graph_mode is None and os.environ.get("EVOJAX_MORPH_WARP_GRAPH"):
         from mujoco.mjx.warp.types import GraphMode
 
@@ -219,7 +267,14 @@ def put_model(mj_model: mujoco.MjModel, graph_mode=None) -> mjx.Model:
         model = mjx.put_model(mj_model, impl="warp", graph_mode=graph_mode)
     # Warp prints a warning for each step whose solver hits its iteration budget: ours is small
     # on purpose (BodyPlan.iterations), so these would flood the output.
-    return model.replace(opt=model.opt.replace(_impl=model.opt._impl.replace(warn_overflow=0)))
+    # The solver's iterations as a plain loop of `iterations` passes, not a CUDA graph
+    # conditional that stops once every world has converged: the same kernels, and a world that
+    # has converged skips each pass (bit-identical on the CPU, tests/test_warp.py), but on an
+    # H100 3-7% faster (docs/benchmarks.md). EVOJAX_MORPH_WARP_CONDITIONAL=1 keeps MJX's
+    # conditional (for benchmarks).
+    conditional = os.environ.get("EVOJAX_MORPH_WARP_CONDITIONAL") == "1"
+    impl = model.opt._impl.replace(warn_overflow=0, graph_conditional=conditional)
+    return model.replace(opt=model.opt.replace(_impl=impl))
 
 
 def buffers(space: Space) -> tuple[int, int]:
