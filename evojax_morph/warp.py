@@ -18,7 +18,8 @@ call.
 
 Contacts and constraint rows are allocated per world for the largest body of the space
 (`buffers`), and an auto-reset selects the state alone (`where_worlds`): Warp's solver kernels
-and the reset's copies run over every allocated row of every world, used or not.
+and the reset's copies run over every allocated row of every world, used or not. The solver's
+iterations run as a plain loop, not a CUDA graph conditional (`put_model`).
 
 Float32 only. The derived constants are computed by `specialise` in the JAX impl and copied;
 `dof_M0` and `stat.meaninertia` are not read by Warp. `geom_aabb` (the broadphase's boxes) is
@@ -143,15 +144,22 @@ def count_stream_registrations() -> None:
     garbage collector, whenever the call allocates) takes the entry from under that call, whose
     graph capture then fails: `Warp error: unknown stream` (seen on an H100, in a process that
     steps a second Warp program after a first). Counted, the native entry is made at the first
-    registration of a handle and erased at its last unregistration."""
+    registration of a handle and erased at its last unregistration. Private to warp-lang 1.19:
+    on a version without these internals, a warning says the counting is off."""
     import ctypes
     import threading
+    import warnings
 
     import warp as wp
 
     wp.init()
-    core = wp._src.context.runtime.core
-    register, unregister = core.wp_cuda_stream_register, core.wp_cuda_stream_unregister
+    try:
+        core = wp._src.context.runtime.core
+        register, unregister = core.wp_cuda_stream_register, core.wp_cuda_stream_unregister
+    except AttributeError as e:
+        warnings.warn(f"warp-lang's stream registrations are not counted ({e}): a Warp call "
+                      "may fail with 'unknown stream' (evojax_morph.warp)", stacklevel=2)
+        return
     if getattr(register, "counted", False):
         return
     refs: dict = {}
