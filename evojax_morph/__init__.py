@@ -13,7 +13,7 @@ from evojax_morph.determinism import (
 from evojax_morph.engines import list_engines
 from evojax_morph.fitness import evaluate, init_params
 from evojax_morph.fitnesses import FitnessConfig, FitnessResult, list_fitnesses, standard_ppo
-from evojax_morph.locomotion import Locomotion, TaskConfig
+from evojax_morph.locomotion import Locomotion, TaskConfig, list_tasks, make_task
 from evojax_morph.morphology import Morphology, format_tree, stack, unstack
 from evojax_morph.ppo import Params, PPOConfig, make_train
 from evojax_morph.sharding import batch_mesh, init_distributed
@@ -46,8 +46,10 @@ __all__ = [
     "list_engines",
     "list_fitnesses",
     "list_spaces",
+    "list_tasks",
     "load_controller",
     "make_space",
+    "make_task",
     "make_train",
     "persistent_cache",
     "render_video",

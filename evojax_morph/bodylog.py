@@ -3,7 +3,8 @@
 Table `bodies`, one row per evaluation: step (0: m0 as the run's reset evaluated it), evolution
 (which of the N parallel evolutions), body (its canonical name, `Space.canonical`: equal for
 equal shapes), fitness, fitness_std (over the K controllers, or the evaluation episodes),
-diverged, parent (the canonical name of the body it was mutated from; NULL at step 0). With
+diverged, parent (the canonical name of the body it was mutated from; NULL at step 0), distance
+and upright (the gait of its evaluation episodes, `FitnessResult`; NULL where none ran). With
 controller inheritance a body's fitness depends on its lineage, so this is a log, not a cache:
 the same body appears once per evaluation. Table `shapes` keeps each body once (body, morphology
 as `Space.to_json`), so that a body of the log can be evaluated again (`run`'s confirm stage).
@@ -21,7 +22,7 @@ from evojax_morph.spaces import Space
 
 SCHEMA = """CREATE TABLE IF NOT EXISTS bodies (
   step INTEGER NOT NULL, evolution INTEGER NOT NULL, body TEXT NOT NULL, fitness REAL NOT NULL,
-  fitness_std REAL NOT NULL, diverged INTEGER NOT NULL, parent TEXT
+  fitness_std REAL NOT NULL, diverged INTEGER NOT NULL, parent TEXT, distance REAL, upright REAL
 );
 CREATE TABLE IF NOT EXISTS shapes (body TEXT PRIMARY KEY, morphology TEXT NOT NULL)"""
 
@@ -34,6 +35,10 @@ class BodyLog:
         self.db = sqlite3.connect(str(path))
         self.db.executescript(SCHEMA)
         self.db.execute("CREATE INDEX IF NOT EXISTS by_body ON bodies (body)")
+        columns = {row[1] for row in self.db.execute("PRAGMA table_info(bodies)")}
+        for gait in ("distance", "upright"):  # a log begun before the gait was kept
+            if gait not in columns:
+                self.db.execute(f"ALTER TABLE bodies ADD COLUMN {gait} REAL")
         self.db.commit()
         self._names: dict[bytes, str] = {}
 
@@ -48,16 +53,20 @@ class BodyLog:
         return self._names[raw]
 
     def add(self, step: int, morphs: Morphology, fitness, fitness_std, diverged,
-            parents: Morphology | None = None) -> None:
+            parents: Morphology | None = None, distance=None, upright=None) -> None:
         """One step's evaluations: host-side (N, ...) bodies and (N,) results."""
+        gait = lambda x, i: None if x is None or not np.isfinite(x[i]) else float(x[i])  # noqa: E731
         at = lambda tree, i: Morphology(*(np.asarray(x)[i] for x in (  # noqa: E731
             tree.active, tree.parent, tree.kind, tree.site, tree.attrs)))
         rows = [
             (step, i, self.name(at(morphs, i)), float(fitness[i]), float(fitness_std[i]),
-             int(bool(diverged[i])), None if parents is None else self.name(at(parents, i)))
+             int(bool(diverged[i])), None if parents is None else self.name(at(parents, i)),
+             gait(distance, i), gait(upright, i))
             for i in range(len(fitness))
         ]
-        self.db.executemany("INSERT INTO bodies VALUES (?, ?, ?, ?, ?, ?, ?)", rows)
+        self.db.executemany("INSERT INTO bodies (step, evolution, body, fitness, fitness_std, "
+                            "diverged, parent, distance, upright) VALUES (?, ?, ?, ?, ?, ?, ?, ?, "
+                            "?)", rows)
 
     def commit(self) -> None:
         self.db.commit()
@@ -74,7 +83,8 @@ class BodyLog:
 def best_bodies(path: Path, n: int = 10) -> list[dict]:
     """The `n` best distinct bodies of a log, by their mean fitness over their evaluations; ties
     go to the body evaluated more often, then to the one seen first. Each with how often it was
-    evaluated, its mean and best fitness, and the step it was first seen.
+    evaluated, its mean and best fitness, the step it was first seen, and its mean distance and
+    upright (None where the fitness measures no gait).
 
     A body evaluated once ranks by that one draw, so a lucky draw can top this list: the mean
     of a few draws is still noisy, which `run`'s confirm stage settles with fresh evaluations.
@@ -82,13 +92,15 @@ def best_bodies(path: Path, n: int = 10) -> list[dict]:
     db = sqlite3.connect(str(path))
     try:
         rows = db.execute(
-            "SELECT body, COUNT(*), AVG(fitness), MAX(fitness), MIN(step) FROM bodies "
+            "SELECT body, COUNT(*), AVG(fitness), MAX(fitness), MIN(step), AVG(distance), "
+            "AVG(upright) FROM bodies "
             "GROUP BY body ORDER BY AVG(fitness) DESC, COUNT(*) DESC, MIN(step), body LIMIT ?",
             (n,),
         ).fetchall()
     finally:
         db.close()
-    keys = ("body", "evaluations", "mean_fitness", "best_fitness", "first_step")
+    keys = ("body", "evaluations", "mean_fitness", "best_fitness", "first_step",
+            "mean_distance", "mean_upright")
     return [dict(zip(keys, r)) for r in rows]
 
 

@@ -35,6 +35,13 @@ class Confirmed:
     values: np.ndarray  # (C,) float: the fitness of each fresh evaluation (one controller each)
     diverged: np.ndarray  # (C,) bool: that evaluation's simulation diverged
     params: Params | None  # (C, ...) the C trained controllers (ppo), else None
+    distance: np.ndarray  # (C,) metres forward in each evaluation's episodes (NaN: none ran)
+    upright: np.ndarray  # (C,) the fraction of each evaluation's episodes before a fall
+
+    @property
+    def upright_whole(self) -> float:
+        """The fraction of the evaluations upright for the whole of every episode."""
+        return float(np.mean(self.upright >= 1.0))
 
     @property
     def mean(self) -> float:
@@ -98,6 +105,7 @@ def confirm(
     res = to_host(evaluate(space, copies, key, one, mesh=mesh))
     per_body = lambda x: np.asarray(x).reshape((n, controllers) + x.shape[1:])  # noqa: E731
     values, diverged = per_body(res.fitness), per_body(res.diverged)
+    distance, upright = per_body(res.distance), per_body(res.upright)
     params = None if res.params is None else jax.tree.map(per_body, res.params)
     host = jax.device_get(morphs)  # the caller's, the same on every process
     found = []
@@ -109,5 +117,7 @@ def confirm(
             values=values[i],
             diverged=diverged[i],
             params=None if params is None else jax.tree.map(lambda x, i=i: x[i], params),
+            distance=distance[i],
+            upright=upright[i],
         ))
     return sorted(found, key=lambda c: -c.mean)  # stable: ties keep the order of `morphs`

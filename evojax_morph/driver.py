@@ -189,7 +189,8 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
         first = to_host(state.first)
         if lead:
             log_bodies.truncate(-1)
-            log_bodies.add(0, first.morph, first.fitness, first.fitness_std, first.diverged)
+            log_bodies.add(0, first.morph, first.fitness, first.fitness_std, first.diverged,
+                           distance=first.distance, upright=first.upright)
             log_bodies.commit()
     phase("build_and_m0")
 
@@ -216,7 +217,7 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
                 at = lambda tree, i=i: jax.tree.map(lambda x: x[i], tree)  # noqa: E731
                 log_bodies.add(step + i + 1, at(bodies["morph"]), bodies["fitness"][i],
                                bodies["fitness_std"][i], bodies["diverged"][i],
-                               at(bodies["parent"]))
+                               at(bodies["parent"]), bodies["distance"][i], bodies["upright"][i])
             reward = metrics["reward"][i]
             row = {
                 "step": step + i + 1,
@@ -274,8 +275,9 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
         if top is not None:  # written last: the stage is done, a --resume keeps it
             record["best_morphology"] = best.to_dict()
             (out / "confirmed.json").write_text(json.dumps(record, indent=1))
+        task = p.fitness.task
         write_results(out, p.space, rows, best, best_fitness, greedy, step, saved, gif, record,
-                      phase)
+                      phase, task.episode_length * task.frame_skip * p.space.template.opt.timestep)
         clock = timing(time.perf_counter() - started, chunk_seconds) | {
             "phases": phases, "first_chunk_dispatch": dispatch}
         (out / "timing.json").write_text(json.dumps(clock, indent=1))
@@ -411,7 +413,32 @@ def confirmed_entry(found: Confirmed, logged: dict) -> dict:
         "diverged": int(found.diverged.sum()),
         "log_mean": logged["mean_fitness"],
         "log_evaluations": logged["evaluations"],
+        **gait_entry(found),
     }
+
+
+def gait_entry(found: Confirmed) -> dict:
+    """A confirmed body's gait over its fresh evaluations: mean distance (m) and upright (the
+    fraction of an episode before a fall), the fraction of evaluations upright the whole
+    episode, and each evaluation's; None where the fitness measures no gait."""
+    if not np.isfinite(found.distance).all():
+        return {"distance": None, "upright": None, "upright_whole": None}
+    return {
+        "distance": float(found.distance.mean()),
+        "upright": float(found.upright.mean()),
+        "upright_whole": found.upright_whole,
+        "distances": [round(float(d), 4) for d in found.distance],
+        "uprights": [round(float(u), 4) for u in found.upright],
+    }
+
+
+def walks(entry: dict, seconds: float) -> str:
+    """'walks 3.1 m in 5 s, upright 100%' of a confirmed entry ('' without a gait)."""
+    if entry.get("distance") is None:
+        return ""
+    return (f"walks {entry['distance']:.2f} m in {seconds:g} s, upright "
+            f"{entry['upright']:.0%} (the whole episode in {entry['upright_whole']:.0%} of "
+            "its evaluations)")
 
 
 def save_controllers(out: Path, p: Pipeline, seed: int, best, best_fitness: float, best_params,
@@ -436,11 +463,13 @@ def save_controllers(out: Path, p: Pipeline, seed: int, best, best_fitness: floa
 
 def write_results(
     out: Path, space, rows: list[dict], best, best_fitness: float, greedy: Greedy | None,
-    steps: int, saved: list[str], gif: bool, record: dict, phase=lambda name: None
+    steps: int, saved: list[str], gif: bool, record: dict, phase=lambda name: None,
+    episode_seconds: float = 5.0,
 ) -> None:
     """curve.png, best.xml, trajectory.png (if `greedy`), confirmed.png (if the confirm stage's
     `record` confirmed bodies), summary.json and best.gif (if controllers were `saved` and
-    `gif`), and a printed digest with the best bodies of the body log and the confirmed ones;
+    `gif`), and a printed digest with the best bodies of the body log and the confirmed ones
+    (with their gait: metres in an episode of `episode_seconds`, and upright);
     `phase("results")` is called before best.gif is drawn, `phase("best_gif")` after."""
     col = lambda name: np.array([r[name] for r in rows], float)  # noqa: E731  (resumed: strings)
     plots.plot_curve(
@@ -470,6 +499,9 @@ def write_results(
         top = confirmed[0]
         what = (f"confirmed mean {top['mean']:.4g}, 95% CI [{top['ci95'][0]:.4g}, "
                 f"{top['ci95'][1]:.4g}] over {top['controllers']} fresh controllers")
+        gait = walks(top, episode_seconds)
+        if gait:
+            print(f"\nconfirmed best {gait}")
     else:
         print(f"\nconfirm: {record['confirm_note']}")
         what = f"fitness {best_fitness:.4g}, its highest single draw"
@@ -508,16 +540,22 @@ def write_results(
 def print_best_bodies(best: list[dict]) -> None:
     print(f"\nthe {len(best)} distinct bodies of the highest mean fitness in the run "
           "(bodies.sqlite):")
-    print(f"  {'mean f':>9} {'evals':>5} {'best f':>9} {'first':>5}  body")
+    print(f"  {'mean f':>9} {'evals':>5} {'best f':>9} {'first':>5} {'metres':>6} "
+          f"{'upright':>7}  body")
+    gait = lambda x, f: "-" if x is None else format(x, f)  # noqa: E731
     for b in best:
         print(f"  {b['mean_fitness']:9.4g} {b['evaluations']:5d} {b['best_fitness']:9.4g} "
-              f"{b['first_step']:5d}  {b['body']}")
+              f"{b['first_step']:5d} {gait(b.get('mean_distance'), '.2f'):>6} "
+              f"{gait(b.get('mean_upright'), '.0%'):>7}  {b['body']}")
 
 
 def print_confirmed(confirmed: list[dict], note: str) -> None:
     print(f"\nconfirmed: {note}:")
-    print(f"  {'mean':>9} {'95% CI':>21} {'log mean':>9} {'evals':>5}  body")
+    print(f"  {'mean':>9} {'95% CI':>21} {'log mean':>9} {'evals':>5} {'metres':>6} "
+          f"{'upright':>7} {'whole':>5}  body")
+    gait = lambda x, f: "-" if x is None else format(x, f)  # noqa: E731
     for c in confirmed:
         ci = f"[{c['ci95'][0]:.4g}, {c['ci95'][1]:.4g}]"
-        print(f"  {c['mean']:9.4g} {ci:>21} {c['log_mean']:9.4g} {c['log_evaluations']:5d}  "
-              f"{c['body']}")
+        print(f"  {c['mean']:9.4g} {ci:>21} {c['log_mean']:9.4g} {c['log_evaluations']:5d} "
+              f"{gait(c.get('distance'), '.2f'):>6} {gait(c.get('upright'), '.0%'):>7} "
+              f"{gait(c.get('upright_whole'), '.0%'):>5}  {c['body']}")

@@ -37,6 +37,8 @@ class EvoState:
     fitness: jax.Array  # (N,)
     fitness_std: jax.Array  # (N,): spread of that fitness (over the K controllers, or episodes)
     diverged: jax.Array  # (N,) bool: a simulation of the evaluation diverged
+    distance: jax.Array  # (N,): metres forward in the evaluation episodes (NaN: none run)
+    upright: jax.Array  # (N,): the fraction of those episodes before a fall
     steps: jax.Array  # (N,) int32: mutations done this episode
 
 
@@ -72,7 +74,8 @@ class EvolutionEnv:
 
     @staticmethod
     def _evaluated(morph: Morphology, out, steps: jax.Array) -> EvoState:
-        return EvoState(morph, out.params, out.fitness, out.fitness_std, out.diverged, steps)
+        return EvoState(morph, out.params, out.fitness, out.fitness_std, out.diverged,
+                        out.distance, out.upright, steps)
 
     def step(self, key: jax.Array, state: EvoState, action: jax.Array):
         """Mutate every env's body, evaluate the children in one batch.

@@ -23,16 +23,52 @@ from evojax_morph.spaces import Space
 
 @dataclasses.dataclass(frozen=True)
 class TaskConfig:
-    """Locomotion task settings."""
+    """Locomotion task settings; `make_task(name)` gives the registered tasks' (`TASKS`)."""
 
+    name: str = "distance"  # the registered task these settings start from (`list_tasks`)
     frame_skip: int = 4  # physics steps (5 ms each) per control step: 50 Hz control
     episode_length: int = 250  # control steps per episode (5 s)
     ctrl_cost: float = 1e-3  # weight of the squared controls of active motors
-    healthy_reward: float = 0.0  # per step; 0 keeps a body that cannot move at fitness 0
+    forward_weight: float = 1.0  # weight of the trunk's forward velocity (m/s) per step
+    healthy_reward: float = 0.0  # per step alive; 0 keeps a body that cannot move at fitness 0
     max_tilt: float = 1.0  # rad: the episode terminates when the trunk tilts further...
     min_height: float = 0.7  # ...or sinks below this fraction of its height at reset
     reset_noise: float = 0.05  # uniform noise on active joint angles and all velocities
     max_speed: float = 100.0  # a generalised velocity beyond this marks a diverged simulation
+
+
+# The registered tasks: a name and its settings, as mujoco_playground registers environments
+# with their default configs. docs/fidelity.md says how each reads the source.
+TASKS = {
+    # The source's reading (NGE's fitness): the return pays the distance covered before the
+    # episode ends, nothing for staying up, so falling forward is the easiest score.
+    "distance": TaskConfig(),
+    # Walking: Gymnasium's Walker2d and Hopper terms (forward velocity, a reward per healthy
+    # step, squared controls; the episode ends at a fall), the healthy reward scaled to these
+    # bodies' speeds (docs/fidelity.md): standing still for 5 s pays 125, walking 2 m 225, a
+    # lunge of 1 m that falls after 1 s 75.
+    "walk": TaskConfig(name="walk", healthy_reward=0.5),
+}
+
+
+def list_tasks() -> list[str]:
+    """Names accepted by `make_task`, `TaskConfig.name` and the CLI's --task."""
+    return sorted(TASKS)
+
+
+def make_task(name: str, **overrides) -> TaskConfig:
+    """The settings of the registered task `name`, with `overrides` (TaskConfig's fields).
+
+    Raises:
+      ValueError: `name` is not a registered task, or an override is not a setting.
+    """
+    if name not in TASKS:
+        raise ValueError(f"unknown task {name!r}; choose one of {', '.join(list_tasks())}")
+    fields = {f.name for f in dataclasses.fields(TaskConfig)} - {"name"}
+    unknown = sorted(set(overrides) - fields)
+    if unknown:
+        raise ValueError(f"unknown task settings {unknown}; choose from {sorted(fields)}")
+    return dataclasses.replace(TASKS[name], **overrides)
 
 
 class Body(NamedTuple):
@@ -51,6 +87,7 @@ class EnvState:
     truncated: jax.Array  # () bool: reached episode_length alive
     steps: jax.Array  # () int32: control steps since reset
     diverged: jax.Array  # () bool: the simulation blew up (state non-finite or too fast)
+    forward: jax.Array  # (): metres the trunk moved forward (+x) in the step that led here
 
     @property
     def done(self) -> jax.Array:
@@ -63,8 +100,8 @@ class Locomotion:
     Observation (6 + 2 x limbs): trunk height, sin and cos of its pitch, its x, z and pitch
       velocities, then every limb slot's joint angle and velocity (0 for inactive slots).
     Action (limbs): one control in [-1, 1] per motor slot; inactive slots are masked to 0.
-    Reward: forward velocity of the trunk over the control step (m/s), plus `healthy_reward`,
-      minus `ctrl_cost` x sum of squared active controls.
+    Reward: `forward_weight` x the trunk's forward velocity over the control step (m/s), plus
+      `healthy_reward`, minus `ctrl_cost` x the sum of squared active controls.
     Termination (the walkers' healthy rules, made relative since bodies differ in size): the
       trunk pitches beyond `max_tilt` or sinks below `min_height` x its height at reset; or the
       simulation diverged (state not finite or a velocity beyond `max_speed`), which also
@@ -164,6 +201,7 @@ class Locomotion:
             truncated=false,
             steps=jnp.zeros((), jnp.int32),
             diverged=false,
+            forward=jnp.zeros(()),
         )
 
     def _controls(self, body: Body, ctrl: jax.Array, action: jax.Array):
@@ -173,8 +211,9 @@ class Locomotion:
     def _outcome(self, body: Body, qpos_before, steps, action, qpos, qvel) -> EnvState:
         """The state after a control step, but its data (set by the caller)."""
         cfg = self.cfg
-        forward_velocity = (qpos[self._root_qpos[0]] - qpos_before[self._root_qpos[0]]) / self.dt
-        reward = forward_velocity + cfg.healthy_reward - cfg.ctrl_cost * jnp.sum(action**2)
+        forward = qpos[self._root_qpos[0]] - qpos_before[self._root_qpos[0]]
+        reward = (cfg.forward_weight * forward / self.dt + cfg.healthy_reward
+                  - cfg.ctrl_cost * jnp.sum(action**2))
 
         finite = jnp.isfinite(qpos).all() & jnp.isfinite(qvel).all()
         diverged = ~finite | (jnp.abs(qvel) > cfg.max_speed).any()
@@ -193,4 +232,5 @@ class Locomotion:
             truncated=(steps >= cfg.episode_length) & ~terminated,
             steps=steps,
             diverged=diverged,
+            forward=jnp.where(diverged | ~jnp.isfinite(forward), 0.0, forward),
         )

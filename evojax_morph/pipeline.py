@@ -18,6 +18,7 @@ from evojax_morph.agents import Agent, RunOptions
 from evojax_morph.evolution import EvolutionEnv, masked_argmax
 from evojax_morph.fitness import make_fitness_fn
 from evojax_morph.fitnesses import FitnessConfig, get_fitness, standard_ppo
+from evojax_morph.locomotion import make_task
 from evojax_morph.sharding import to_host
 from evojax_morph.spaces import Space, make_space
 
@@ -28,6 +29,7 @@ class RunConfig:
 
     space: str = "bad_walker"
     fitness: str = "ppo"  # a registered fitness kind: ppo | predefined | tame | table
+    task: str = ""  # the locomotion task (`list_tasks`): walk | distance; "": `default_task`
     classifier: str = ""  # tame: directory of the trained classifier
     table: str = ""  # table: the landscape table (.npz); "": the space's packaged one
     agent: str = "ddqn"  # a registered agent: ddqn | dqn | qrdqn | a2c | random | evolution
@@ -45,6 +47,16 @@ class RunConfig:
     checkpoint_every: int = 1  # chunks between checkpoints
     confirm: int = 4  # bodies of the highest mean evaluated again at the end; 0: none
     confirm_controllers: int = 4  # fresh evaluations (controllers) per confirmed body
+
+
+def default_task(cfg: RunConfig) -> str:
+    """The task of a run that names none: the table's own for the table fitness (its results
+    were trained under it), else "walk"."""
+    if cfg.fitness == "table":
+        from evojax_morph.fitnesses import table
+
+        return table.task_of(table.table_path(make_space(cfg.space), cfg))
+    return "walk"
 
 
 class Pipeline(NamedTuple):
@@ -66,7 +78,8 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     (`agents.config_for_run`).
     """
     space = make_space(cfg.space)
-    fit_cfg = FitnessConfig(kind=cfg.fitness, ppo=standard_ppo(cfg.train_steps, cfg.controllers),
+    fit_cfg = FitnessConfig(kind=cfg.fitness, task=make_task(cfg.task or default_task(cfg)),
+                            ppo=standard_ppo(cfg.train_steps, cfg.controllers),
                             classifier=cfg.classifier, physics=cfg.physics, table=cfg.table)
     init_fn, fitness_fn = make_fitness_fn(space, fit_cfg, mesh)
     horizon = cfg.horizon or space.default_horizon

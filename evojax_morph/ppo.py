@@ -119,6 +119,8 @@ class TrainResult:
     diverged: jax.Array  # () bool: some simulation diverged (its reward was zeroed)
     train_return: jax.Array  # (): mean over envs of each env's last finished training episode
     entropy: jax.Array  # (): policy entropy per active motor at the end of training
+    distance: jax.Array  # (): metres the trunk moved forward in an evaluation episode, mean
+    upright: jax.Array  # (): the fraction of an evaluation episode before a fall, mean
 
 
 def masked_log_prob(dist: distribution.NormalTanhDistribution, logits, raw_action, mask):
@@ -237,6 +239,8 @@ def make_train(
                 diverged=out.diverged.any(1),
                 train_return=out.train_return.mean(1),
                 entropy=out.entropy.mean(1),
+                distance=out.distance.mean(1),
+                upright=out.upright.mean(1),
             )
 
     return make_init(env, networks, cfg), train
@@ -318,8 +322,9 @@ def make_train_learners(space: Space, env: Locomotion, engine: Engine, networks,
 
         # EVALUATE: deterministic policy, eval_episodes episodes from fresh resets
         with jax.named_scope("evaluate"):
-            returns, eval_diverged = evaluate(rollout.keys, models, params)
-        diverged = eval_diverged.any(-1) | (metrics["diverged"].any(0) if steps else False)
+            episodes = evaluate(rollout.keys, models, params)
+        diverged = episodes.diverged.any(-1) | (metrics["diverged"].any(0) if steps else False)
+        returns = episodes.returns
         last = lambda name: metrics[name][-1] if steps else jnp.zeros(learners)
         return TrainResult(
             params=params,
@@ -328,6 +333,8 @@ def make_train_learners(space: Space, env: Locomotion, engine: Engine, networks,
             diverged=diverged,
             train_return=last("return"),
             entropy=last("entropy"),
+            distance=episodes.distance.mean(-1),
+            upright=episodes.upright.mean(-1),
         )
 
     return train_learners
@@ -469,34 +476,50 @@ def reset_learners(space: Space, env: Locomotion, engine: Engine, keys, models, 
     return worlds, bodies, state
 
 
+class Episodes(NamedTuple):
+    """What the evaluation episodes of L learners measured, each (L, eval_episodes)."""
+
+    returns: jax.Array  # the return, up to the end of the episode (a fall, or its length)
+    diverged: jax.Array  # bool: a simulation diverged while the episode ran
+    distance: jax.Array  # metres the trunk moved forward (+x) before the episode ended
+    upright: jax.Array  # the fraction of episode_length before a fall: 1 for a whole episode
+
+
 def make_evaluate_learners(space: Space, env: Locomotion, engine: Engine, cfg: PPOConfig):
-    """`evaluate(keys (L,), models (B,), params (L, ...)) -> (returns, diverged)`, both
-    (L, eval_episodes): L learners' deterministic policies, the episodes of learner l reset with
+    """`evaluate(keys (L,), models (B,), params (L, ...)) -> Episodes` of (L, eval_episodes)
+    arrays: L learners' deterministic policies, the episodes of learner l reset with
     `split(keys[l], eval_episodes)`, as `make_evaluate` scores one controller."""
     policy = jax.vmap(make_policy(space, env.cfg, cfg))
     episodes = cfg.eval_episodes
 
-    def evaluate(keys: jax.Array, models, params: Params):
+    def evaluate(keys: jax.Array, models, params: Params) -> Episodes:
         learners = keys.shape[0]
         worlds, world_bodies, state = reset_learners(space, env, engine, keys, models, episodes)
         by_learner = lambda x: x.reshape((learners, episodes) + x.shape[1:])
 
         def body(carry, _):
-            state, returns, alive, diverged = carry
+            state, out, alive = carry
             action = policy(params, by_learner(state.obs))
             state = env.step_worlds(
                 engine, worlds, world_bodies, state, action.reshape(-1, env.action_size)
             )
-            returns = returns + jnp.where(alive, by_learner(state.reward), 0.0)
-            diverged = diverged | (alive & by_learner(state.diverged))
-            return (state, returns, alive & ~by_learner(state.done), diverged), None
+            on = lambda x: jnp.where(alive, by_learner(x), 0.0)
+            up = alive & ~by_learner(state.terminated)  # upright after this step
+            out = Episodes(
+                returns=out.returns + on(state.reward),
+                diverged=out.diverged | (alive & by_learner(state.diverged)),
+                distance=out.distance + on(state.forward),
+                upright=out.upright + up,
+            )
+            return (state, out, alive & ~by_learner(state.done)), None
 
         zeros = jnp.zeros((learners, episodes), state.reward.dtype)
         alive = jnp.ones((learners, episodes), bool)
-        (_, returns, _, diverged), _ = jax.lax.scan(
-            body, (state, zeros, alive, ~alive), length=env.cfg.episode_length
+        length = env.cfg.episode_length
+        (_, out, _), _ = jax.lax.scan(
+            body, (state, Episodes(zeros, ~alive, zeros, zeros), alive), length=length
         )
-        return returns, diverged
+        return out._replace(upright=out.upright / length)
 
     return evaluate
 

@@ -29,14 +29,19 @@ from evojax_morph.determinism import deterministic_gpu, persistent_cache
 from evojax_morph.engines import AUTO, list_engines, resolve
 from evojax_morph.fitnesses import list_fitnesses
 from evojax_morph.fitnesses.table import default_path as default_table
+from evojax_morph.fitnesses.table import task_of
+from evojax_morph.locomotion import list_tasks
 from evojax_morph.pipeline import RunConfig
 from evojax_morph.sharding import barrier, init_distributed
 from evojax_morph.spaces import list_spaces
 
 
-def gpu_defaults() -> dict:
+def gpu_defaults(space: str = "bad_walker") -> dict:
     """On a GPU the same command evaluates a larger batch with a longer PPO budget, and several
-    controllers per body (`gpu_controllers`)."""
+    controllers per body (`gpu_controllers`); the Constructor's come from its budget benchmark
+    (`experiments.walking_budget`, docs/results.md "Bodies that walk")."""
+    if space == "constructor":
+        return CONSTRUCTOR_GPU
     return {
         "num_envs": 256,
         "train_steps": 50_000,
@@ -50,10 +55,30 @@ def gpu_defaults() -> dict:
     }
 
 
-def gpu_controllers(physics: str) -> int:
+# The Constructor on the walking task (docs/results.md, "Bodies that walk"): at 100,000 PPO
+# steps 2.1% of random 8-mutation bodies' evaluations walk 2 m upright (0.8% at 50,000, none at
+# 10,000), at twice 50,000's cost; 128 evolutions x 1 controller keep a step at ~6 s on an H100
+# (200,000 walks more, 3.8%, but doubles the greedy rollout's 8 one-body calls too).
+CONSTRUCTOR_GPU = {
+    "num_envs": 128,
+    "train_steps": 100_000,
+    "steps": 60,
+    "explore_steps": 30,
+    "learning_starts": 128,
+    "chunk": 5,
+    "checkpoint_every": 1,
+    "confirm": 8,
+    "confirm_controllers": 32,
+}
+
+
+def gpu_controllers(physics: str, space: str = "bad_walker") -> int:
     """Controllers per body on a GPU, spending each engine's speed on a fitness with less noise
     (docs/benchmarks.md, H100, 256 bodies of 50,000 PPO steps): 8 on MuJoCo Warp (cv 0.15,
-    noise-to-signal 0.43, 27 s of fitness a step), 4 on the JAX engine (cv 0.23, 0.60; 66 s)."""
+    noise-to-signal 0.43, 27 s of fitness a step), 4 on the JAX engine (cv 0.23, 0.60; 66 s).
+    The Constructor's budget goes to PPO steps and evolutions instead: 1."""
+    if space == "constructor":
+        return 1
     return 8 if physics == "warp" else 4
 
 
@@ -139,9 +164,21 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     gpu = jax.default_backend() == "gpu"
-    defaults = dataclasses.replace(RunConfig(), **gpu_defaults()) if gpu else RunConfig()
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--space", default=RunConfig().space)
+    space = pre.parse_known_args(argv)[0].space
+    defaults = dataclasses.replace(RunConfig(), **gpu_defaults(space)) if gpu else RunConfig()
     add = parser.add_argument
     add("--space", default=defaults.space, help=f"morphology space: {', '.join(list_spaces())}")
+    add(
+        "--task",
+        default=None,
+        help=f"the locomotion task a PPO controller learns: {' | '.join(list_tasks())}. walk "
+        "(the default): forward velocity plus a reward per step upright, the episode ending at a "
+        "fall (Gymnasium's walkers' terms); distance: the source's, the distance covered before "
+        "the episode ends (falling forward scores). Default: walk; with --fitness table, the "
+        "table's own",
+    )
     add(
         "--fitness",
         default=defaults.fitness,
@@ -286,6 +323,8 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
 
     if args.space not in list_spaces():
         parser.error(f"unknown space {args.space!r}; known spaces: {', '.join(list_spaces())}")
+    if args.task is not None and args.task not in list_tasks():
+        parser.error(f"unknown task {args.task!r}; known tasks: {', '.join(list_tasks())}")
     for name in (
         "steps",
         "num_envs",
@@ -324,6 +363,16 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
                 f"--fitness table: no table at {str(table)!r}; build one with `python -m "
                 f"experiments.build_tables --space {args.space} --out PATH` and pass --table PATH"
             )
+        built = task_of(table)
+        if args.task is not None and args.task != built:
+            parser.error(
+                f"--fitness table: the table {str(table)!r} was built under the task {built!r}, "
+                f"but --task asks for {args.task!r}; pass --task {built} or a table built "
+                f"under {args.task!r} (`python -m experiments.build_tables --task {args.task}`)"
+            )
+        args.task = built
+    if args.task is None:
+        args.task = "walk"
 
     def physics(name: str, fitness: str) -> str:
         """The engine `name` resolves to ("auto"), checked: exit 2 with the reason if it cannot
@@ -346,7 +395,8 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
     if not args.resume:
         args.physics = physics(args.physics, args.fitness)
     if args.controllers is None:
-        args.controllers = gpu_controllers(args.physics) if gpu else defaults.controllers
+        args.controllers = gpu_controllers(args.physics, args.space) if gpu else \
+            defaults.controllers
     cfg = RunConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(RunConfig)})
     classifier = str(Path(args.classifier).resolve()) if args.classifier else ""
     table = str(Path(args.table).resolve()) if args.table else ""
@@ -363,7 +413,9 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
     if args.resume:
         if not saved.exists():
             parser.error(f"--resume: no run in {str(out)!r} (no config.json)")
-        cfg = dataclasses.replace(RunConfig(**json.loads(saved.read_text())), steps=args.steps)
+        # a run begun before tasks were named trained under the source's task
+        config = {"task": "distance", **json.loads(saved.read_text())}
+        cfg = dataclasses.replace(RunConfig(**config), steps=args.steps)
         cfg = dataclasses.replace(cfg, physics=physics(cfg.physics, cfg.fitness))
     elif (out / "checkpoints").exists():
         parser.error(

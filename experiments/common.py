@@ -27,6 +27,7 @@ from evojax_morph.pipeline import RunConfig, build  # noqa: E402
 class Setup:
     space: str = "bad_walker"
     fitness: str = "ppo"
+    task: str = "distance"  # the source's task; "walk" for the walking task
     train_steps: int = 10_000
     num_envs: int = 8  # parallel evolutions per seed
     steps: int = 12  # environment steps
@@ -57,6 +58,7 @@ def run_config(agent: str, setup: Setup) -> RunConfig:
     return RunConfig(
         space=setup.space,
         fitness=setup.fitness,
+        task=setup.task,
         agent=agent,
         num_envs=setup.num_envs,
         horizon=setup.horizon,

@@ -41,6 +41,9 @@ TINY = [
         (["--space", "nope"], "unknown space 'nope'"),
         (["--space", "bad_walker", "--steps", "-3"], "--steps must be positive"),
         (["--space", "bad_walker", "--fitness", "magic"], "invalid choice"),
+        (["--space", "bad_walker", "--task", "run"], "unknown task 'run'; known tasks: distance, walk"),
+        (["--space", "bad_walker", "--fitness", "table", "--task", "walk"],
+         "was built under the task 'distance', but --task asks for 'walk'"),
     ],
 )
 def test_bad_input_exits_with_2(args, message, capsys, tmp_path):
@@ -48,6 +51,7 @@ def test_bad_input_exits_with_2(args, message, capsys, tmp_path):
         run.main(args + ["--out", str(tmp_path / "run")])
     assert e.value.code == 2
     assert message in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()  # nothing half-written
 
 
 def test_unwritable_out_and_missing_resume(capsys, tmp_path):

@@ -167,14 +167,22 @@ def test_batch_equals_one_at_a_time(walker, checked):
         saved = em.SavedController(walker, CHECK, 0, pick(checked.morphs), pick(checked.params),
                                    0.0, f"body {b}")
         eval_key = jax.random.split(key)[0]  # what train keeps for the evaluation
-        return np.mean([em.replay(saved, k, controller=c).episode_return
-                        for k in jax.random.split(eval_key, CHECK.ppo.eval_episodes)])
+        reps = [em.replay(saved, k, controller=c)
+                for k in jax.random.split(eval_key, CHECK.ppo.eval_episodes)]
+        # the gait as the replay shows it: metres to its last frame, steps before a fall
+        length = CHECK.task.episode_length
+        upright = [1.0 if len(r.reward) == length else (len(r.reward) - 1) / length for r in reps]
+        return np.mean([[r.episode_return, r.distance[-1], u] for r, u in zip(reps, upright)], 0)
 
     singles = np.array([[alone(b, c, key) for c, key in enumerate(jax.random.split(k, 2))]
-                        for b, k in enumerate(checked.keys)])  # (SEEDS, 2)
+                        for b, k in enumerate(checked.keys)])  # (SEEDS, 2, 3)
+    singles, gait = singles[..., 0], singles[..., 1:].mean(1)
     # Measured on this CPU: the two paths differ by at most 1.2e-4.
     np.testing.assert_allclose(result.fitness, singles.mean(1), rtol=1e-3, atol=2e-3)
     np.testing.assert_allclose(result.fitness_std, singles.std(1), rtol=1e-3, atol=2e-3)
+    np.testing.assert_allclose(result.distance, gait[:, 0], rtol=1e-3, atol=1e-4)
+    np.testing.assert_allclose(result.upright, gait[:, 1])
+    assert np.ptp(np.asarray(result.distance)) > 0.02  # bodies moved differently
     assert np.abs(np.diff(singles[:MOTORLESS])).max() > 1.0  # m*'s pairs differ: a mix-up shows
     assert len(set(np.round(np.asarray(result.fitness), 3))) > 2  # different bodies, different results
 

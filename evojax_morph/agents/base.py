@@ -57,7 +57,8 @@ class Transition(NamedTuple):
 def bodies(parents: EvoState, children: EvoState) -> dict:
     """What the body log keeps of one step: every child evaluated, with its parent."""
     return {"parent": parents.morph, "morph": children.morph, "fitness": children.fitness,
-            "fitness_std": children.fitness_std, "diverged": children.diverged}
+            "fitness_std": children.fitness_std, "diverged": children.diverged,
+            "distance": children.distance, "upright": children.upright}
 
 
 def _restart(env: EvolutionEnv, parents: EvoState, children: EvoState, first: EvoState, done):

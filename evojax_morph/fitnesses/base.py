@@ -26,7 +26,8 @@ class FitnessConfig:
       from where they leave the body, with a pre-trained classifier; see `evojax_morph.tame`)
       or "table" (the mean of `ppo.controllers` stored PPO results of the body, drawn from a
       landscape table; no controllers, no inheritance; see `fitnesses.table`).
-    task: the locomotion task the PPO controller learns.
+    task: the locomotion task the PPO controller learns (`make_task(name)`; its name says
+      which registered task it started from).
     ppo: the inner PPO's settings and budget.
     classifier: for "tame", the directory of a classifier saved by `python -m evojax_morph.tame`.
     physics: the engine that steps the worlds of the kinds that simulate ("jax" or "warp",
@@ -73,14 +74,19 @@ class FitnessResult:
     params: Params | None  # batched (B, ...) trained controllers; None for kinds without one
     train_return: jax.Array  # (B,) mean over envs of the last finished training episode's return
     entropy: jax.Array  # (B,) policy entropy per motor at the end of training
+    # The gait of the evaluation episodes (NaN for a kind that runs none, or a table without):
+    distance: jax.Array  # (B,) metres the trunk moved forward in an episode, mean
+    upright: jax.Array  # (B,) the fraction of an episode before a fall, mean (1: never fell)
     env_steps: int = struct.field(pytree_node=False)  # control steps spent per morphology
 
 
 def untrained_result(fitness: jax.Array, diverged: jax.Array, params, env_steps: int):
-    """The `FitnessResult` of a fitness that trains nothing: zero spread, return and entropy,
-    and the given controllers passed through unchanged."""
-    zeros = jnp.zeros_like(fitness)
-    return FitnessResult(fitness, zeros, diverged, params, zeros, zeros, env_steps=env_steps)
+    """The `FitnessResult` of a fitness that trains nothing and runs no episode it could
+    measure a gait in: zero spread, return and entropy, NaN distance and upright, and the given
+    controllers passed through unchanged."""
+    zeros, nan = jnp.zeros_like(fitness), jnp.full_like(fitness, jnp.nan)
+    return FitnessResult(fitness, zeros, diverged, params, zeros, zeros, nan, nan,
+                         env_steps=env_steps)
 
 
 class Fitness(NamedTuple):

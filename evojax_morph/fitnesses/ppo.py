@@ -41,6 +41,8 @@ def make(space: Space, cfg: FitnessConfig):
             params=out.params,
             train_return=out.train_return,
             entropy=out.entropy,
+            distance=out.distance,
+            upright=out.upright,
             env_steps=env_steps,
         )
 

@@ -65,6 +65,12 @@ class Table:
     meta: dict  # how the results were made: settings, engine, device, date, revision, ...
 
     @property
+    def task(self) -> str:
+        """The task its results were trained under (`make_task`); tables built before tasks
+        were named trained under the source's, "distance"."""
+        return str(self.meta.get("task", "distance"))
+
+    @property
     def seeds(self) -> int:
         """S: the most results a row can hold."""
         return self.fitness.shape[1]
@@ -247,8 +253,22 @@ def load(space: Space, cfg: FitnessConfig) -> tuple[Table, np.ndarray]:
     return _prepared(space, str(path.resolve()), path.stat().st_mtime_ns)
 
 
+def task_of(path: Path) -> str:
+    """The task the table at `path` was built under ("distance" where it cannot be read: the
+    run's own checks then say what is wrong with the table)."""
+    try:
+        return Table.load(path).task
+    except (OSError, ValueError, KeyError):
+        return "distance"
+
+
 def make(space: Space, cfg: FitnessConfig):
     table, sigs_np = load(space, cfg)
+    if table.task != cfg.task.name:
+        raise ValueError(f"the table {table_path(space, cfg)} was built under the task "
+                         f"{table.task!r}, but the fitness asks for {cfg.task.name!r}: build "
+                         f"a table under {cfg.task.name!r} (`python -m experiments.build_tables "
+                         f"--task {cfg.task.name}`) or ask for {table.task!r}")
     k, seeds = cfg.ppo.controllers, table.seeds
     if k > table.base:
         raise ValueError(f"{k} controllers per body, but the table holds {table.base} results "
@@ -290,8 +310,8 @@ def make(space: Space, cfg: FitnessConfig):
         # loads holds every body reachable from m0 (`_check_closed`), so agents never meet one.
         jax.lax.cond(found.all(), lambda *_: None,
                      lambda *a: jax.debug.callback(report, *a), found, morphs)
-        zeros = jnp.zeros_like(f)
-        return FitnessResult(f, std, div, params, zeros, zeros, env_steps=env_steps)
+        zeros, nan = jnp.zeros_like(f), jnp.full_like(f, jnp.nan)
+        return FitnessResult(f, std, div, params, zeros, zeros, nan, nan, env_steps=env_steps)
 
     return None, evaluate
 
