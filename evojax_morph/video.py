@@ -38,6 +38,7 @@ class Replay(NamedTuple):
     qpos: np.ndarray  # (T + 1, nq) positions of the padded template, the reset state first
     reward: np.ndarray  # (T,) reward of each control step
     dt: float  # seconds per control step
+    fell: bool = False  # the episode ended by a fall (or a diverged simulation), not its length
 
     @property
     def distance(self) -> np.ndarray:
@@ -60,7 +61,8 @@ _EPISODE_FNS: dict = {}
 
 
 def _episode_fn(space, fitness):
-    """jit(episode(key, morph, params)) -> (qpos (L, nq), reward (L,), done (L,), qpos0), one
+    """jit(episode(key, morph, params)) -> (qpos (L, nq), reward (L,), done (L,), terminated
+    (L,), qpos0), one
     per space and fitness config, compiled once however often the space is made again."""
     cache_key = (space.name, space.max_nodes, fitness)
     if cache_key not in _EPISODE_FNS:
@@ -79,7 +81,7 @@ def _make_episode_fn(space, fitness):
 
         def step(state, _):
             state = env.step(model, state, policy(params, state.obs))
-            return state, (state.data.qpos, state.reward, state.done)
+            return state, (state.data.qpos, state.reward, state.done, state.terminated)
 
         _, out = jax.lax.scan(step, first, length=fitness.task.episode_length)
         return out + (first.data.qpos,)
@@ -105,11 +107,12 @@ def replay(saved: SavedController, key: jax.Array | None = None, controller: int
         params = jax.tree.map(lambda x: x[controller], params)
     key = jax.random.PRNGKey(saved.seed) if key is None else key
     episode, dt = _episode_fn(saved.space, saved.fitness)
-    qpos, reward, done, qpos0 = jax.device_get(episode(key, saved.morph, params))
+    qpos, reward, done, terminated, qpos0 = jax.device_get(episode(key, saved.morph, params))
     ended = np.flatnonzero(done)
     length = int(ended[0]) + 1 if len(ended) else len(done)
     qpos = np.concatenate([qpos0[None], qpos[:length]])
-    return Replay(np.asarray(qpos, np.float64), np.asarray(reward[:length], np.float64), dt)
+    return Replay(np.asarray(qpos, np.float64), np.asarray(reward[:length], np.float64), dt,
+                  bool(terminated[length - 1]))
 
 
 def lower_replay(space, fitness):

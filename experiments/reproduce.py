@@ -80,8 +80,9 @@ def toy(g: Group) -> Group:
 
 
 def setup_of(g: Group, args) -> Setup:
-    return Setup(space=g.space, fitness="ppo", train_steps=args.train_steps, num_envs=g.num_envs,
-                 steps=g.steps, chunk=g.chunk, hidden=g.hidden, physics=args.physics)
+    return Setup(space=g.space, fitness="ppo", task=args.task, train_steps=args.train_steps,
+                 num_envs=g.num_envs, steps=g.steps, chunk=g.chunk, hidden=g.hidden,
+                 physics=args.physics)
 
 
 def record(g: Group, args, seconds: float, **data) -> dict:
@@ -91,7 +92,8 @@ def record(g: Group, args, seconds: float, **data) -> dict:
         "space": g.space, "agent": g.agent, "hidden": g.hidden, "seeds": g.seeds,
         "fitness": {"kind": "ppo", "train_steps": args.train_steps, "controllers": 1,
                     "inheritance": True},
-        "physics": args.physics, "device": f"{device.platform}: {device.device_kind}",
+        "task": args.task, "physics": args.physics,
+        "device": f"{device.platform}: {device.device_kind}",
         "evaluations_per_run": g.num_envs * g.steps, "num_envs": g.num_envs, "steps": g.steps,
         "device_seconds": round(seconds, 1),
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
@@ -102,12 +104,14 @@ def record(g: Group, args, seconds: float, **data) -> dict:
 def confirm(space, morphs: list, key, args) -> list[dict]:
     """`em.confirm` of each body (once per distinct body), in the order of `morphs`."""
     distinct = {space.canonical(m): m for m in morphs}
-    cfg = em.FitnessConfig(kind="ppo", physics=args.physics,
+    cfg = em.FitnessConfig(kind="ppo", task=em.make_task(args.task), physics=args.physics,
                            ppo=em.standard_ppo(args.train_steps, 1))
     found = em.confirm(space, em.stack(list(distinct.values())), key, cfg,
                        args.confirm_controllers)
     by_name = {c.body: {"body": c.body, "mean": c.mean, "ci95": list(c.ci95),
-                        "controllers": len(c.values)} for c in found}
+                        "controllers": len(c.values), "distance": float(c.distance.mean()),
+                        "upright": float(c.upright.mean()), "upright_whole": c.upright_whole}
+               for c in found}
     return [by_name[space.canonical(m)] for m in morphs]
 
 
@@ -300,6 +304,8 @@ def main(argv: list[str] | None = None) -> int:
     add("--stages", nargs="+", default=[], help=f"all, or of {', '.join(STAGES)}")
     add("--physics", default="jax", help="the fitness's engine: jax | warp")
     add("--train-steps", type=int, default=TRAIN_STEPS, help="PPO steps per evaluation")
+    add("--task", default="distance", choices=em.list_tasks(),
+        help="the PPO fitness's task: distance (the source's, the shipped figures) or walk")
     add("--confirm-controllers", type=int, default=32, help="controllers confirming a body")
     add("--budget", type=float, default=480,
         help="seconds: start no chunk after this (a device call's limit, less a margin)")

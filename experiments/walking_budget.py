@@ -18,6 +18,7 @@ episodes) and upright (the fraction of an episode before a fall, mean). Per cell
 
 Each cell goes to --out/CELL.json (arrays (bodies, seeds)); a cell already there with the same
 settings is not run again, so a call that stops at --deadline (seconds) resumes in the next.
+--out/budget.png draws every cell there.
 
   python -m experiments.walking_budget --physics warp --bodies 256 --seeds 8   # GPU
   python -m experiments.walking_budget --bodies 4 --seeds 2 --cells walk:320 --tiny   # CPU
@@ -173,7 +174,45 @@ def main(argv: list[str] | None = None) -> int:
               f"{data['walk2m']:.2%}, n/s {data['noise_to_signal']:.2f}, split "
               f"{data['split_half']:.2f}, best5 distance {data['best5_distance']}, "
               f"{data['seconds_per_eval'] * 1e3:.1f} ms/eval", flush=True)
+    draw(args.out)
     return 0
+
+
+def draw(out: Path) -> None:
+    """OUT/budget.png from every cell in OUT: per budget of the walking task, the share of
+    evaluations upright the whole episode and walking 2 m, and noise-to-signal; the other
+    tasks at their budget as single markers."""
+    cells = [json.loads(p.read_text()) for p in sorted(out.glob("*.json"))]
+    if not cells:
+        return
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    walk = sorted((c for c in cells if c["cell"].startswith("walk:")),
+                  key=lambda c: c["train_steps"])
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    figures = [("walk2m", "evaluations upright and >= 2 m", 100),
+               ("whole", "evaluations upright the whole episode", 100),
+               ("noise_to_signal", "noise-to-signal (top 20 bodies)", 1)]
+    for ax, (key, title, scale) in zip(axes, figures):
+        ax.plot([c["train_steps"] for c in walk], [c[key] * scale for c in walk], "o-",
+                label="walk")
+        for c in cells:
+            if not c["cell"].startswith("walk:"):
+                ax.plot(c["train_steps"], c[key] * scale, "x", label=c["cell"].rsplit(":")[0])
+        ax.set_xscale("log")
+        ax.set_xlabel("PPO steps per controller")
+        ax.set_title(title + (" (%)" if scale == 100 else ""), fontsize=10)
+    axes[0].legend(fontsize=7)
+    n, seeds = len(cells[0]["bodies"]), cells[0]["seeds"]
+    fig.suptitle(f"Constructor: {n} bodies x {seeds} seeds, one controller each "
+                 f"({cells[0]['device']})", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(out / "budget.png", dpi=110)
+    plt.close(fig)
+    print(f"wrote {out / 'budget.png'}")
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ import evojax_morph as em
 
 def test_tasks_are_registered_by_name():
     assert em.list_tasks() == ["distance", "walk"]
-    assert em.make_task("distance") == em.TaskConfig()  # the source's: every table and figure so far
+    assert em.make_task("distance") == em.TaskConfig()  # the source's: all tables and figures
     walk = em.make_task("walk", episode_length=50)
     assert walk.name == "walk" and walk.episode_length == 50 and walk.healthy_reward > 0
     assert em.FitnessConfig.from_dict(em.FitnessConfig(task=walk).to_dict()).task == walk
