@@ -29,16 +29,19 @@ def walker():
 
 
 def synthetic(walker, path, drop=None, nan=False):
-    """A table whose result s of row r is 1000 r + 2^s: a value names its row and its seeds."""
+    """A table whose result s of row r is 1000 r + 2^s: a value names its row and its seeds;
+    its gait too (distance r + 2^s / 1000, upright 2^-s)."""
     space, bodies, names = walker
     fitness = 1000.0 * np.arange(len(bodies))[:, None] + 2.0 ** np.arange(SEEDS)[None]
+    gait = (fitness / 1000, np.broadcast_to(2.0 ** -np.arange(SEEDS), fitness.shape))
     diverged = np.zeros(fitness.shape, bool)
     diverged[5, 0] = True
     if nan:
         fitness[3, 2] = np.nan
     keep = [i for i in range(len(bodies)) if i != drop]
     table = tb.Table(space.name, [names[i] for i in keep], tb.stacked([bodies[i] for i in keep]),
-                     fitness[keep].astype(np.float32), diverged[keep], {"env_steps_per_result": 7})
+                     fitness[keep].astype(np.float32), diverged[keep], {"env_steps_per_result": 7},
+                     *(g[keep] for g in gait))
     table.save(path)
     return table
 
@@ -74,8 +77,9 @@ def test_signature_tells_bodies_apart_as_canonical_does(name):
 
 @pytest.mark.parametrize("k", [1, 3])
 def test_draws_come_from_the_bodys_row(walker, tmp_path, k):
-    """K = `ppo.controllers` distinct results of the body's own row, their mean and spread;
-    every body of every slot arrangement, each with its own key."""
+    """K = `ppo.controllers` distinct results of the body's own row, their mean and spread,
+    and the mean gait of the same K results; every body of every slot arrangement, each with
+    its own key."""
     space, _, names = walker
     table = synthetic(walker, tmp_path / "t.npz")
     morphs = [m for m, _ in reachable_batched(space)]
@@ -95,6 +99,9 @@ def test_draws_come_from_the_bodys_row(walker, tmp_path, k):
     np.testing.assert_allclose(std, [v.std() for v in ref], rtol=1e-4, atol=1e-3)
     np.testing.assert_array_equal(diverged, [table.diverged[r, d].any()
                                              for r, d in zip(rows, drawn)])
+    for gait in ("distance", "upright"):  # saved, loaded and drawn with the fitness
+        np.testing.assert_allclose(getattr(res, gait), [getattr(table, gait)[r, d].mean()
+                                                        for r, d in zip(rows, drawn)], rtol=1e-6)
     # over 60 keys every result of m0's row gets drawn, and other keys draw others
     m0 = em.evaluate(space, em.stack([space.initial()] * 60), jax.random.PRNGKey(7),
                      config(tmp_path / "t.npz", k))
@@ -103,6 +110,34 @@ def test_draws_come_from_the_bodys_row(walker, tmp_path, k):
     again = em.evaluate(space, batch, jax.random.PRNGKey(99), config(tmp_path / "t.npz", k))
     assert (np.asarray(again.fitness) != fitness).any()
     assert res.params is None and res.env_steps == 7 * k
+
+
+def test_the_gait_round_trips_and_old_tables_have_none(walker, tmp_path):
+    """A table's gait survives save and load; a file from before the gait (the packaged
+    tables) loads with a NaN gait, and the table fitness's gait of it is NaN."""
+    space, bodies, _ = walker
+    table = synthetic(walker, tmp_path / "t.npz")
+    back = tb.Table.load(tmp_path / "t.npz")
+    for gait in (back.distance, back.upright):
+        assert gait.dtype == np.float32 and np.isfinite(gait).all()
+    np.testing.assert_array_equal(back.distance, table.distance)
+    np.testing.assert_array_equal(back.upright, table.upright)
+    with np.load(tmp_path / "t.npz") as f:  # as tables were written before the gait
+        np.savez_compressed(tmp_path / "old.npz",
+                            **{k: f[k] for k in f.files if k not in ("distance", "upright")})
+    old = tb.Table.load(tmp_path / "old.npz")
+    assert old.distance.shape == old.upright.shape == old.fitness.shape
+    assert np.isnan(old.distance).all() and np.isnan(old.upright).all()
+    res = em.evaluate(space, em.stack(bodies[:4]), jax.random.PRNGKey(0),
+                      config(tmp_path / "old.npz"))
+    assert np.isfinite(res.fitness).all()
+    assert np.isnan(res.distance).all() and np.isnan(res.upright).all()
+    for name in ("bad_walker", "length_walker"):  # the packaged tables, as they are
+        with np.load(tb.default_path(name)) as f:
+            assert "distance" not in f.files and "upright" not in f.files
+        packaged = tb.Table.load(tb.default_path(name))
+        assert packaged.distance.shape == packaged.fitness.shape
+        assert np.isnan(packaged.distance).all() and np.isnan(packaged.upright).all()
 
 
 def test_missing_bodies_are_errors_naming_them(walker, tmp_path, monkeypatch):
