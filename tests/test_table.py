@@ -47,19 +47,23 @@ def synthetic(walker, path, drop=None, nan=False):
 
 
 def count_keys(monkeypatch) -> list:
-    """Patches `em.evaluate` (as the table builder calls it) to record the keys of each call."""
+    """Patches `em.evaluate` (as the table builder calls it) to record the keys of each call,
+    and to give each result a gait (distance its fitness + 1, upright 0.5: the predefined
+    fitness measures none)."""
     evaluated, real = [], em.evaluate
 
     def counting(space, morphs, keys, cfg):
         evaluated.append(np.asarray(keys))
-        return real(space, morphs, keys, cfg)
+        res = real(space, morphs, keys, cfg)
+        return res.replace(distance=res.fitness + 1, upright=jnp.full_like(res.fitness, 0.5))
 
     monkeypatch.setattr(em, "evaluate", counting)
     return evaluated
 
 
-def config(path, k=1):
-    return em.FitnessConfig(kind="table", table=str(path), ppo=em.standard_ppo(0, k))
+def config(path, k=1, task="distance"):
+    return em.FitnessConfig(kind="table", table=str(path), ppo=em.standard_ppo(0, k),
+                            task=em.make_task(task))
 
 
 @pytest.mark.parametrize("name", ["bad_walker", "length_walker"])
@@ -218,7 +222,8 @@ def test_an_agent_runs_on_the_table(walker, tmp_path):
 
 def test_builder_resumes_and_refuses_other_settings(walker, tmp_path, monkeypatch, capsys):
     """A build stopped after a batch continues where it stopped and evaluates each (body,
-    seed) once; the table of the predefined fitness holds each body's own value."""
+    seed) once; the table of the predefined fitness holds each body's own value and the gait
+    `em.evaluate` gave it; it records its task, and serves, and resumes under, no other."""
     space, bodies, names = walker
     out = str(tmp_path / "bw.npz")
     args = ["--space", "bad_walker", "--fitness", "predefined", "--seeds", "2", "--batch", "64",
@@ -236,13 +241,27 @@ def test_builder_resumes_and_refuses_other_settings(walker, tmp_path, monkeypatc
     np.testing.assert_allclose(done.fitness, np.stack([want, want], 1))
     assert done.names == names and done.meta["seeds"] == 2 and done.meta["revision"]
     assert done.meta["fitness"]["kind"] == "predefined" and "device" in done.meta
+    assert done.meta["task"] == done.task == "distance"
+    np.testing.assert_allclose(done.distance, done.fitness + 1)  # count_keys's gait
+    np.testing.assert_array_equal(done.upright, 0.5)
     keys = np.concatenate(evaluated)[:180]
     assert len({k.tobytes() for k in keys}) == 180  # no result measured twice
     with pytest.raises(SystemExit, match="other settings"):
         build_tables.main(args[:-2] + ["--seed", "5", "--out", out])
+    with pytest.raises(SystemExit, match="other settings") as refused:
+        build_tables.main(args + ["--task", "walk"])
+    assert "'task': 'distance'" in str(refused.value) and "'task': 'walk'" in str(refused.value)
+    build_tables.main(args[:-1] + [str(tmp_path / "walk.npz"), "--task", "walk",
+                                   "--max-batches", "1"])
+    walk = tb.Table.load(tmp_path / "walk.npz")
+    assert walk.task == "walk" and walk.meta["fitness"]["task"]["name"] == "walk"
     # the built table is a table fitness: closed under mutation, m0's row first
     res = real(space, em.stack([space.initial()]), jax.random.PRNGKey(0), config(out))
     np.testing.assert_allclose(res.fitness, want[:1])
+    np.testing.assert_allclose(res.distance, want[:1] + 1)
+    with pytest.raises(ValueError, match="under the task 'distance', but the fitness asks for "
+                                         "'walk'"):
+        real(space, em.stack([space.initial()]), jax.random.PRNGKey(0), config(out, task="walk"))
 
 
 @pytest.mark.slow  # 23 s cold; test_confirm runs `run` on a table in the default set
@@ -277,6 +296,7 @@ def test_deep_rows_are_built_and_drawn_from(walker, tmp_path, monkeypatch):
     counts = table.counts()
     assert table.seeds == 5 and table.base == 2 and table.complete
     assert (counts[deep] == 5).all() and (np.delete(counts, deep) == 2).all()
+    np.testing.assert_array_equal(np.isnan(table.distance), ~table.done)  # gait where measured
     np.testing.assert_allclose(table.mean(), want, rtol=1e-6)
     keys = np.concatenate(evaluated)
     assert len({k.tobytes() for k in keys}) == 90 * 2 + 3 * 3  # the padding repeats a key
