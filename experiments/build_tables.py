@@ -19,6 +19,11 @@ bodies with the highest means get results --seeds .. S2-1 as well (the same keys
 enough to tell the best bodies apart; the other rows stay at --seeds (NaN-padded). The deep
 rows are chosen by the means of the --seeds results and recorded in the metadata ("deep").
 
+Each result keeps its gait beside its fitness (`FitnessResult.distance` and `.upright`). The
+controllers learn --task (`em.list_tasks()`; "distance", the source's task and the packaged
+tables', by default), recorded in the metadata ("task"): the table fitness serves that task
+only, so a table of another task needs its own --out.
+
 Writes evojax_morph/tables/SPACE.npz by default (the table fitness's packaged table).
 """
 
@@ -65,6 +70,7 @@ def revision() -> str:
 
 def fitness_config(args) -> em.FitnessConfig:
     extra = {name: getattr(args, name) for name in engine_flags()}
+    extra["task"] = em.make_task(args.task)
     if args.fitness == "predefined":
         return em.FitnessConfig(kind="predefined", **extra)
     return em.FitnessConfig(kind="ppo", ppo=em.standard_ppo(args.train_steps, 1), **extra)
@@ -73,6 +79,7 @@ def fitness_config(args) -> em.FitnessConfig:
 def settings(space: em.Space, cfg: em.FitnessConfig, args, names: list[str]) -> dict:
     """What makes two builds the same table: a resumed build must match them."""
     return {
+        "task": cfg.task.name,  # `Table.task`: the table fitness serves this task only
         "fitness": cfg.to_dict(),
         "seed": args.seed,
         "seeds": args.seeds,
@@ -95,6 +102,7 @@ def deepen(table: tables.Table, top: int, seeds: int) -> None:
         pad = lambda a, fill: np.concatenate(  # noqa: E731
             [a, np.full((a.shape[0], wide - a.shape[1]), fill, a.dtype)], 1)
         table.fitness, table.diverged = pad(table.fitness, np.nan), pad(table.diverged, False)
+        table.distance, table.upright = pad(table.distance, np.nan), pad(table.upright, np.nan)
     table.meta["deep"] = {"top": top, "seeds": wide, "rows": rows,
                           "chosen_by": f"the mean of the first {base} results"}
 
@@ -150,10 +158,12 @@ def build(args) -> tables.Table:
         )
         t = time.time()
         res = em.evaluate(space, em.stack([bodies[k] for k, _ in padded]), keys, cfg)
-        fitness, diverged = jax.device_get((res.fitness, res.diverged))
+        fitness, diverged, distance, upright = jax.device_get(
+            (res.fitness, res.diverged, res.distance, res.upright))
         seconds = time.time() - t
         for i, (k, s) in enumerate(part):
             table.fitness[k, s], table.diverged[k, s] = fitness[i], diverged[i]
+            table.distance[k, s], table.upright[k, s] = distance[i], upright[i]
         device = jax.devices()[0]
         device = f"{device.platform}: {device.device_kind} x {jax.device_count()}"
         table.meta.update(
@@ -195,6 +205,9 @@ def main(argv: list[str] | None = None) -> int:
     add("--batch", type=int, default=1024,
         help="(body, seed) results per compiled call (the run's GPU batch: 256 bodies x 4)")
     add("--seed", type=int, default=0, help="the results' keys derive from it")
+    add("--task", default="distance", choices=em.list_tasks(),
+        help="the task the controllers learn (`em.make_task`); the table fitness serves only "
+        "this task")
     add("--out", default=None, help="the table (.npz); default: evojax_morph/tables/SPACE.npz")
     add("--max-batches", type=int, default=None, help="stop after this many batches")
     add("--deep-top", type=int, default=0,

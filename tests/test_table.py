@@ -29,34 +29,41 @@ def walker():
 
 
 def synthetic(walker, path, drop=None, nan=False):
-    """A table whose result s of row r is 1000 r + 2^s: a value names its row and its seeds."""
+    """A table whose result s of row r is 1000 r + 2^s: a value names its row and its seeds;
+    its gait too (distance r + 2^s / 1000, upright 2^-s)."""
     space, bodies, names = walker
     fitness = 1000.0 * np.arange(len(bodies))[:, None] + 2.0 ** np.arange(SEEDS)[None]
+    gait = (fitness / 1000, np.broadcast_to(2.0 ** -np.arange(SEEDS), fitness.shape))
     diverged = np.zeros(fitness.shape, bool)
     diverged[5, 0] = True
     if nan:
         fitness[3, 2] = np.nan
     keep = [i for i in range(len(bodies)) if i != drop]
     table = tb.Table(space.name, [names[i] for i in keep], tb.stacked([bodies[i] for i in keep]),
-                     fitness[keep].astype(np.float32), diverged[keep], {"env_steps_per_result": 7})
+                     fitness[keep].astype(np.float32), diverged[keep], {"env_steps_per_result": 7},
+                     *(g[keep] for g in gait))
     table.save(path)
     return table
 
 
 def count_keys(monkeypatch) -> list:
-    """Patches `em.evaluate` (as the table builder calls it) to record the keys of each call."""
+    """Patches `em.evaluate` (as the table builder calls it) to record the keys of each call,
+    and to give each result a gait (distance its fitness + 1, upright 0.5: the predefined
+    fitness measures none)."""
     evaluated, real = [], em.evaluate
 
     def counting(space, morphs, keys, cfg):
         evaluated.append(np.asarray(keys))
-        return real(space, morphs, keys, cfg)
+        res = real(space, morphs, keys, cfg)
+        return res.replace(distance=res.fitness + 1, upright=jnp.full_like(res.fitness, 0.5))
 
     monkeypatch.setattr(em, "evaluate", counting)
     return evaluated
 
 
-def config(path, k=1):
-    return em.FitnessConfig(kind="table", table=str(path), ppo=em.standard_ppo(0, k))
+def config(path, k=1, task="distance"):
+    return em.FitnessConfig(kind="table", table=str(path), ppo=em.standard_ppo(0, k),
+                            task=em.make_task(task))
 
 
 @pytest.mark.parametrize("name", ["bad_walker", "length_walker"])
@@ -74,8 +81,9 @@ def test_signature_tells_bodies_apart_as_canonical_does(name):
 
 @pytest.mark.parametrize("k", [1, 3])
 def test_draws_come_from_the_bodys_row(walker, tmp_path, k):
-    """K = `ppo.controllers` distinct results of the body's own row, their mean and spread;
-    every body of every slot arrangement, each with its own key."""
+    """K = `ppo.controllers` distinct results of the body's own row, their mean and spread,
+    and the mean gait of the same K results; every body of every slot arrangement, each with
+    its own key."""
     space, _, names = walker
     table = synthetic(walker, tmp_path / "t.npz")
     morphs = [m for m, _ in reachable_batched(space)]
@@ -95,6 +103,9 @@ def test_draws_come_from_the_bodys_row(walker, tmp_path, k):
     np.testing.assert_allclose(std, [v.std() for v in ref], rtol=1e-4, atol=1e-3)
     np.testing.assert_array_equal(diverged, [table.diverged[r, d].any()
                                              for r, d in zip(rows, drawn)])
+    for gait in ("distance", "upright"):  # saved, loaded and drawn with the fitness
+        np.testing.assert_allclose(getattr(res, gait), [getattr(table, gait)[r, d].mean()
+                                                        for r, d in zip(rows, drawn)], rtol=1e-6)
     # over 60 keys every result of m0's row gets drawn, and other keys draw others
     m0 = em.evaluate(space, em.stack([space.initial()] * 60), jax.random.PRNGKey(7),
                      config(tmp_path / "t.npz", k))
@@ -103,6 +114,34 @@ def test_draws_come_from_the_bodys_row(walker, tmp_path, k):
     again = em.evaluate(space, batch, jax.random.PRNGKey(99), config(tmp_path / "t.npz", k))
     assert (np.asarray(again.fitness) != fitness).any()
     assert res.params is None and res.env_steps == 7 * k
+
+
+def test_the_gait_round_trips_and_old_tables_have_none(walker, tmp_path):
+    """A table's gait survives save and load; a file from before the gait (the packaged
+    tables) loads with a NaN gait, and the table fitness's gait of it is NaN."""
+    space, bodies, _ = walker
+    table = synthetic(walker, tmp_path / "t.npz")
+    back = tb.Table.load(tmp_path / "t.npz")
+    for gait in (back.distance, back.upright):
+        assert gait.dtype == np.float32 and np.isfinite(gait).all()
+    np.testing.assert_array_equal(back.distance, table.distance)
+    np.testing.assert_array_equal(back.upright, table.upright)
+    with np.load(tmp_path / "t.npz") as f:  # as tables were written before the gait
+        np.savez_compressed(tmp_path / "old.npz",
+                            **{k: f[k] for k in f.files if k not in ("distance", "upright")})
+    old = tb.Table.load(tmp_path / "old.npz")
+    assert old.distance.shape == old.upright.shape == old.fitness.shape
+    assert np.isnan(old.distance).all() and np.isnan(old.upright).all()
+    res = em.evaluate(space, em.stack(bodies[:4]), jax.random.PRNGKey(0),
+                      config(tmp_path / "old.npz"))
+    assert np.isfinite(res.fitness).all()
+    assert np.isnan(res.distance).all() and np.isnan(res.upright).all()
+    for name in ("bad_walker", "length_walker"):  # the packaged tables, as they are
+        with np.load(tb.default_path(name)) as f:
+            assert "distance" not in f.files and "upright" not in f.files
+        packaged = tb.Table.load(tb.default_path(name))
+        assert packaged.distance.shape == packaged.fitness.shape
+        assert np.isnan(packaged.distance).all() and np.isnan(packaged.upright).all()
 
 
 def test_missing_bodies_are_errors_naming_them(walker, tmp_path, monkeypatch):
@@ -183,7 +222,8 @@ def test_an_agent_runs_on_the_table(walker, tmp_path):
 
 def test_builder_resumes_and_refuses_other_settings(walker, tmp_path, monkeypatch, capsys):
     """A build stopped after a batch continues where it stopped and evaluates each (body,
-    seed) once; the table of the predefined fitness holds each body's own value."""
+    seed) once; the table of the predefined fitness holds each body's own value and the gait
+    `em.evaluate` gave it; it records its task, and serves, and resumes under, no other."""
     space, bodies, names = walker
     out = str(tmp_path / "bw.npz")
     args = ["--space", "bad_walker", "--fitness", "predefined", "--seeds", "2", "--batch", "64",
@@ -201,13 +241,27 @@ def test_builder_resumes_and_refuses_other_settings(walker, tmp_path, monkeypatc
     np.testing.assert_allclose(done.fitness, np.stack([want, want], 1))
     assert done.names == names and done.meta["seeds"] == 2 and done.meta["revision"]
     assert done.meta["fitness"]["kind"] == "predefined" and "device" in done.meta
+    assert done.meta["task"] == done.task == "distance"
+    np.testing.assert_allclose(done.distance, done.fitness + 1)  # count_keys's gait
+    np.testing.assert_array_equal(done.upright, 0.5)
     keys = np.concatenate(evaluated)[:180]
     assert len({k.tobytes() for k in keys}) == 180  # no result measured twice
     with pytest.raises(SystemExit, match="other settings"):
         build_tables.main(args[:-2] + ["--seed", "5", "--out", out])
+    with pytest.raises(SystemExit, match="other settings") as refused:
+        build_tables.main(args + ["--task", "walk"])
+    assert "'task': 'distance'" in str(refused.value) and "'task': 'walk'" in str(refused.value)
+    build_tables.main(args[:-1] + [str(tmp_path / "walk.npz"), "--task", "walk",
+                                   "--max-batches", "1"])
+    walk = tb.Table.load(tmp_path / "walk.npz")
+    assert walk.task == "walk" and walk.meta["fitness"]["task"]["name"] == "walk"
     # the built table is a table fitness: closed under mutation, m0's row first
     res = real(space, em.stack([space.initial()]), jax.random.PRNGKey(0), config(out))
     np.testing.assert_allclose(res.fitness, want[:1])
+    np.testing.assert_allclose(res.distance, want[:1] + 1)
+    with pytest.raises(ValueError, match="under the task 'distance', but the fitness asks for "
+                                         "'walk'"):
+        real(space, em.stack([space.initial()]), jax.random.PRNGKey(0), config(out, task="walk"))
 
 
 @pytest.mark.slow  # 23 s cold; test_confirm runs `run` on a table in the default set
@@ -242,6 +296,7 @@ def test_deep_rows_are_built_and_drawn_from(walker, tmp_path, monkeypatch):
     counts = table.counts()
     assert table.seeds == 5 and table.base == 2 and table.complete
     assert (counts[deep] == 5).all() and (np.delete(counts, deep) == 2).all()
+    np.testing.assert_array_equal(np.isnan(table.distance), ~table.done)  # gait where measured
     np.testing.assert_allclose(table.mean(), want, rtol=1e-6)
     keys = np.concatenate(evaluated)
     assert len({k.tobytes() for k in keys}) == 90 * 2 + 3 * 3  # the padding repeats a key

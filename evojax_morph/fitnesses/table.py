@@ -4,8 +4,10 @@ A landscape table (NAS-Bench-101's idea) holds, for every body of a space (`enum
 told apart by `Space.canonical`), S independent results of the PPO fitness, each one controller
 trained from scratch. The fitness of a body is the mean of K results drawn without replacement
 from its row, K = `cfg.ppo.controllers`: the noise of the real fitness with K controllers, at
-the cost of a lookup. It runs inside the jitted agent loop: a body is matched to its row by a
-jittable signature of its tree (`signature`), equal exactly when the canonical names are.
+the cost of a lookup; its gait (distance, upright) is the mean of the same K results' gaits,
+NaN where the table holds none. It runs inside the jitted agent loop: a body is matched to its
+row by a jittable signature of its tree (`signature`), equal exactly when the canonical names
+are.
 
 No controllers and no inheritance: every draw is a fresh training's result, so a child does not
 start from its parent's controller and a no-op (or a revisit) draws again instead of training
@@ -54,6 +56,8 @@ class Table:
     Every body has the table's `base` results (`meta["seeds"]`, 32 in the packaged tables);
     the bodies with the highest means may have more, up to S (deep rows, so that the best
     bodies can be told apart: `build_tables --deep-top`), NaN beyond a row's own count.
+    Each result may carry its gait (`FitnessResult.distance` and `.upright`), NaN where not
+    measured: tables built before the gait (the packaged ones) have none.
     Saved as one compressed .npz (a few tens of KB for 256 bodies x 32 results).
     """
 
@@ -63,6 +67,13 @@ class Table:
     fitness: np.ndarray  # (T, S) float32; NaN where not measured
     diverged: np.ndarray  # (T, S) bool: the result's simulation diverged (fitness zeroed)
     meta: dict  # how the results were made: settings, engine, device, date, revision, ...
+    distance: np.ndarray | None = None  # (T, S) float32: metres forward; None: all NaN
+    upright: np.ndarray | None = None  # (T, S) float32: fraction before a fall; None: all NaN
+
+    def __post_init__(self):
+        as_gait = lambda x: (np.full(self.fitness.shape, np.nan, np.float32) if x is None
+                             else np.asarray(x, np.float32))
+        self.distance, self.upright = as_gait(self.distance), as_gait(self.upright)
 
     @property
     def task(self) -> str:
@@ -120,8 +131,8 @@ class Table:
         np.savez_compressed(
             tmp, names=np.asarray(self.names), active=b.active, parent=b.parent, kind=b.kind,
             site=b.site, attrs=b.attrs, fitness=self.fitness.astype(np.float32),
-            diverged=self.diverged, meta=np.asarray(json.dumps({"space": self.space,
-                                                                "format": FORMAT, **self.meta})),
+            diverged=self.diverged, distance=self.distance, upright=self.upright,
+            meta=np.asarray(json.dumps({"space": self.space, "format": FORMAT, **self.meta})),
         )
         os.replace(tmp, path)
 
@@ -134,8 +145,11 @@ class Table:
             space = meta.pop("space")
             if meta.get("format") != FORMAT:
                 raise ValueError(f"{path}: table format {meta.get('format')}, expected {FORMAT}")
+            gait = [np.asarray(f[k], np.float32) if k in f.files else None
+                    for k in ("distance", "upright")]  # absent from tables before the gait
             return cls(space, [str(n) for n in f["names"]], bodies,
-                       np.asarray(f["fitness"], np.float32), np.asarray(f["diverged"]), meta)
+                       np.asarray(f["fitness"], np.float32), np.asarray(f["diverged"]), meta,
+                       *gait)
 
 
 # --- the signature: a body's row found inside jit ----------------------------------------------
@@ -275,6 +289,7 @@ def make(space: Space, cfg: FitnessConfig):
                          "a body")
     sigs = jnp.asarray(sigs_np)
     fitness, diverged = jnp.asarray(table.fitness), jnp.asarray(table.diverged)
+    distance, upright = jnp.asarray(table.distance), jnp.asarray(table.upright)
     measured = jnp.asarray(table.done)
     env_steps = k * int(table.meta.get("env_steps_per_result", 0))
     name = table_path(space, cfg)
@@ -286,11 +301,11 @@ def make(space: Space, cfg: FitnessConfig):
         # column is unmeasured (10x faster than random.choice's permutation on the CPU)
         uniform = jax.random.uniform(key, (seeds,))
         draws = jax.lax.top_k(jnp.where(measured[row], uniform, -1.0), k)[1]
-        values = fitness[row, draws]
         found = hit.any()
         nan = jnp.float32(jnp.nan)
-        return (jnp.where(found, values.mean(), nan), jnp.where(found, values.std(), nan),
-                diverged[row, draws].any() | ~found, found)
+        mean = lambda x: jnp.where(found, x[row, draws].mean(), nan)  # fitness and gait alike
+        return (mean(fitness), jnp.where(found, fitness[row, draws].std(), nan),
+                diverged[row, draws].any() | ~found, found, mean(distance), mean(upright))
 
     def report(found, morphs):
         """Host side: raises naming the first body not found (runs only when one is missing,
@@ -305,13 +320,13 @@ def make(space: Space, cfg: FitnessConfig):
         raise ValueError(f"body {body} is not in the {space.name} table {name}")
 
     def evaluate(keys: jax.Array, morphs: Morphology, params) -> FitnessResult:
-        f, std, div, found = jax.vmap(one)(keys, morphs)
+        f, std, div, found, dist, up = jax.vmap(one)(keys, morphs)
         # A body outside the table gets NaN (diverged) and a host-side error; a table that
         # loads holds every body reachable from m0 (`_check_closed`), so agents never meet one.
         jax.lax.cond(found.all(), lambda *_: None,
                      lambda *a: jax.debug.callback(report, *a), found, morphs)
-        zeros, nan = jnp.zeros_like(f), jnp.full_like(f, jnp.nan)
-        return FitnessResult(f, std, div, params, zeros, zeros, nan, nan, env_steps=env_steps)
+        zeros = jnp.zeros_like(f)
+        return FitnessResult(f, std, div, params, zeros, zeros, dist, up, env_steps=env_steps)
 
     return None, evaluate
 
