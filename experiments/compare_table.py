@@ -312,7 +312,8 @@ def main():
     out = Path(args.out)
     name = f"compare_table_{s.space}"
     path = out / f"{name}.json"
-    summary = {"settings": dataclasses.asdict(s), "evaluations_per_run": s.num_envs * s.steps,
+    summary = {"settings": dataclasses.asdict(s), "task": table.task,
+               "evaluations_per_run": s.num_envs * s.steps,
                "table": {"path": str(table_fitness.table_path(space, FitnessConfig(
                    table=s.table))), "meta": table.meta, "best": float(true.max()),
                    "best_body": table.names[int(true.argmax())]},

@@ -201,8 +201,9 @@ def test_body_log_of_a_run(straight):
     m0 = space.canonical(space.initial())
     at = {(r[0], r[1]): r for r in rows}
     horizon = space.default_horizon
-    for (step, evolution), (_, _, body, _, std, diverged, parent) in at.items():
+    for (step, evolution), (_, _, body, _, std, diverged, parent, *gait) in at.items():
         assert std == 0.0 and diverged == 0  # the predefined fitness
+        assert gait == [None, None]  # which runs no episode to measure a gait in
         if step == 0:
             assert body == m0 and parent is None
         else:  # mutated from the evolution's previous body, or from m0 after a restart

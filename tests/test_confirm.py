@@ -123,7 +123,7 @@ def test_body_log_ranks_by_mean(tmp_path):
     rows = [(0, 0, "lucky", 90.0), (1, 0, "lucky", 0.0), (1, 1, "single", 40.0),
             (2, 0, "steady", 40.0), (2, 1, "steady", 40.0), (3, 0, "late", 40.0)]
     db = sqlite3.connect(path)
-    db.executemany("INSERT INTO bodies VALUES (?, ?, ?, ?, 0, 0, NULL)", rows)
+    db.executemany("INSERT INTO bodies VALUES (?, ?, ?, ?, 0, 0, NULL, NULL, NULL)", rows)
     db.commit()
     db.close()
     best = em.best_bodies(path)
@@ -131,3 +131,29 @@ def test_body_log_ranks_by_mean(tmp_path):
     assert [b["evaluations"] for b in best] == [2, 2, 1, 1]
     assert best[0]["mean_fitness"] == 45.0 and best[0]["best_fitness"] == 90.0
     assert bodylog.best_draw(path) == {"body": "lucky", "fitness": 90.0, "step": 0}
+
+
+def test_body_log_keeps_the_gait(tmp_path):
+    """Each evaluation's distance and upright, NULL where the fitness measured none (NaN), and
+    each body's means of them; a log begun before the gait was kept gets the two columns."""
+    path = tmp_path / "bodies.sqlite"
+    db = sqlite3.connect(path)  # the schema before issue 44
+    db.execute("CREATE TABLE bodies (step INTEGER NOT NULL, evolution INTEGER NOT NULL, "
+               "body TEXT NOT NULL, fitness REAL NOT NULL, fitness_std REAL NOT NULL, "
+               "diverged INTEGER NOT NULL, parent TEXT)")
+    db.execute("INSERT INTO bodies VALUES (0, 0, 'old', 1.0, 0, 0, NULL)")
+    db.commit()
+    db.close()
+    space = em.make_space("bad_walker")
+    walker, m0 = space.optimum(), space.initial()
+    log = bodylog.BodyLog(path, space)
+    for step, distance, upright in ((1, [2.0, np.nan], [1.0, np.nan]), (2, [4.0, 1.0], [0.5, 1.0])):
+        log.add(step, em.stack([walker, m0]), np.array([200.0, 100.0]), np.zeros(2),
+                np.zeros(2, bool), distance=np.array(distance), upright=np.array(upright))
+    log.commit()
+    log.close()
+    best = {b["body"]: b for b in em.best_bodies(path)}
+    assert best[space.canonical(walker)]["mean_distance"] == 3.0
+    assert best[space.canonical(walker)]["mean_upright"] == 0.75
+    assert best[space.canonical(m0)]["mean_distance"] == 1.0  # the NULL left out of the mean
+    assert best["old"]["mean_distance"] is None and best["old"]["mean_upright"] is None

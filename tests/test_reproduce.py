@@ -31,6 +31,7 @@ def test_every_stage_resumes_and_leaves_its_data(tmp_path):
         assert r["fitness"] == {"kind": "ppo", "train_steps": 320, "controllers": 1,
                                 "inheritance": True}
         assert r["seeds"] == 2 and r["device"] and r["revision"] and r["device_seconds"] > 0
+        assert r["task"] == "distance"  # the source's, as the shipped figures
         assert len(r["returns"]) == toy[name].steps // r["horizon"]
     assert len(groups["fig8"]["entropy"]) == toy["fig8"].steps
     for name, of in reproduce.UNROLLS.items():
@@ -40,6 +41,7 @@ def test_every_stage_resumes_and_leaves_its_data(tmp_path):
             assert len(u["bodies"]) == len(u["actions"]) + 1
             for b in u["bodies"]:
                 assert b["ci95"][0] <= b["mean"] <= b["ci95"][1] and b["controllers"] == 2
+                assert 0 <= b["upright"] <= 1 and abs(b["distance"]) < 10  # the gait, confirmed
     assert len(groups["compare_random"]["returned"]) == 2
     for figure in ("fig5_unroll", "fig7_unroll", "fig8_a2c_constructor", "compare_constructor",
                    "fig6_ddqn_hidden"):
