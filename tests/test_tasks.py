@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import evojax_morph as em
+from evojax_morph.physics import mjx
 
 
 def test_tasks_are_registered_by_name():
@@ -23,7 +24,8 @@ def test_tasks_are_registered_by_name():
 
 
 SPACE = em.make_space("bad_walker")
-BODY = em.Locomotion(SPACE).body(jax.jit(SPACE.mjx_model)(SPACE.optimum()))  # m*'s motors, height
+MODEL = jax.jit(SPACE.mjx_model)(SPACE.optimum())  # m*
+BODY = em.Locomotion(SPACE).body(MODEL)  # its motors and height
 
 
 def episode_return(task: em.TaskConfig, xs: np.ndarray, fall_at: int | None = None) -> float:
@@ -67,25 +69,23 @@ def test_a_body_pushed_forward_moves_the_distance_it_should():
     forward velocity set by hand, every other velocity 0, controls 0): nothing acts on it, so
     after 10 control steps of 20 ms its trunk has moved 0.3 m, each step's `forward` is 0.03 m
     and each step of the walking task pays 1.5 m/s + the healthy reward; it stays upright."""
-    space = SPACE
-    model = jax.jit(space.mjx_model)(space.optimum())
-    model = model.replace(opt=model.opt.replace(gravity=jnp.zeros(3)))
-    for task in [em.make_task("walk", reset_noise=0.0)]:  # the reward of each: above
-        env = em.Locomotion(space, task)
-        state = jax.jit(env.reset)(jax.random.PRNGKey(0), model)
-        x, z, _ = env._root_qpos
-        qpos = state.data.qpos.at[z].add(1.0)
-        qvel = jnp.zeros_like(state.data.qvel).at[env._root_dof[0]].set(1.5)
-        state = state.replace(data=state.data.replace(qpos=qpos, qvel=qvel))
-        step = jax.jit(env.step)
-        forward = []
-        for _ in range(10):
-            state = step(model, state, jnp.zeros(env.action_size))
-            forward.append(float(state.forward))
-            assert not state.done
-            np.testing.assert_allclose(state.reward, 1.5 + task.healthy_reward, rtol=1e-4)
-        np.testing.assert_allclose(forward, 0.03, rtol=1e-4)
-        np.testing.assert_allclose(state.data.qpos[x] - qpos[x], 0.3, rtol=1e-4)
+    model = MODEL.replace(opt=MODEL.opt.replace(gravity=jnp.zeros(3)))
+    task = em.make_task("walk")
+    env = em.Locomotion(SPACE, task)
+    x, z, _ = env._root_qpos
+    data = mjx.make_data(model)
+    qpos = data.qpos.at[z].add(1.0)  # lifted 1 m: no contact
+    qvel = jnp.zeros_like(data.qvel).at[env._root_dof[0]].set(1.5)
+    state = env._first(BODY, qpos, qvel).replace(data=data.replace(qpos=qpos, qvel=qvel))
+    step = jax.jit(env.step)
+    forward = []
+    for _ in range(10):
+        state = step(model, state, jnp.zeros(env.action_size))
+        forward.append(float(state.forward))
+        assert not state.done
+        np.testing.assert_allclose(state.reward, 1.5 + task.healthy_reward, rtol=1e-4)
+    np.testing.assert_allclose(forward, 0.03, rtol=1e-4)
+    np.testing.assert_allclose(state.data.qpos[x] - qpos[x], 0.3, rtol=1e-4)
 
 
 @pytest.mark.slow  # a PPO program at a CPU budget: about 2 minutes
