@@ -18,6 +18,7 @@ A body is "confirmed" by `em.confirm`: --confirm-controllers controllers trained
 
   python -m experiments.reproduce --stages fig6_h20 fig6_h100 fig5 --physics warp --budget 480
   python -m experiments.reproduce --draw --data docs/figures/reproduce --out docs/figures
+  python -m experiments.reproduce --task walk --stages compare --physics warp   # walking task
   python -m experiments.reproduce --toy --stages all --data /tmp/r --out /tmp/r   # CPU smoke
 """
 
@@ -65,6 +66,13 @@ GROUPS = {  # at least the evaluations per run and seeds the issue asks for
     **{f"compare_{a}": Group("constructor", a, 128, 160)  # 20,480
        for a in ("a2c", "ddqn", "evolution", "random")},
 }
+# The comparison on the walking task (issue 44): 10 seeds a method at 50,000 PPO steps, where
+# the walking task separates Constructor bodies (docs/results.md, "Bodies that walk"), so
+# 1,024 evaluations a run (32 evolutions x 4 episodes of 8 mutations) to fit 40 runs into about
+# 30 GPU-minutes. Drawn as compare_constructor_walk.
+WALK = {"train_steps": 50_000, "data": Path("docs/figures/reproduce_walk"),
+        **{f"compare_{a}": Group("constructor", a, 32, 32, seeds=10, chunk=4)
+           for a in ("a2c", "ddqn", "evolution", "random")}}
 UNROLLS = {"fig5": "fig6_h100", "fig7": "fig8"}  # a figure of greedy unrolls: its agents' group
 STAGES = {  # a stage runs these groups and unrolls in turn; each group is a stage too
     "fig6_h20": ["fig6_h20"], "fig6_h100": ["fig6_h100"], "fig5": ["fig5"], "fig8": ["fig8"],
@@ -176,7 +184,10 @@ def unroll(name: str, of: str, args) -> bool:
 
 
 def groups(args) -> dict[str, Group]:
-    return {k: toy(g) if args.toy else g for k, g in GROUPS.items()}
+    """The run groups of --task: the source's, or on the walking task its comparison's."""
+    chosen = {**GROUPS, **{k: g for k, g in WALK.items() if isinstance(g, Group)}} \
+        if args.task == "walk" else GROUPS
+    return {k: toy(g) if args.toy else g for k, g in chosen.items()}
 
 
 def compare_effects(runs: dict[str, dict]) -> dict:
@@ -290,9 +301,13 @@ def draw(data: Path, out: Path) -> None:
         ax_g.set_title("each run's returned body: its best single draw\nin the run (left), "
                        "its confirmed mean (right)", fontsize=10)
         ax_g.set(ylabel="fitness of the returned body")
-        fig.suptitle(f"Constructor, {next(iter(runs.values()))['evaluations_per_run']:,} "
-                     "evaluations a run: RL against evolution and random walks", fontsize=10)
-        save(fig, out, "compare_constructor", {"effects": effects, "runs": runs})
+        first = next(iter(runs.values()))
+        fig.suptitle(f"Constructor, {first.get('task', 'distance')} task, "
+                     f"{first['evaluations_per_run']:,} evaluations a run: RL against "
+                     f"evolution and random walks", fontsize=10)
+        task = next(iter(runs.values())).get("task", "distance")
+        name = "compare_constructor" + ("" if task == "distance" else f"_{task}")
+        save(fig, out, name, {"effects": effects, "runs": runs})
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -303,13 +318,15 @@ def main(argv: list[str] | None = None) -> int:
     add = parser.add_argument
     add("--stages", nargs="+", default=[], help=f"all, or of {', '.join(STAGES)}")
     add("--physics", default="jax", help="the fitness's engine: jax | warp")
-    add("--train-steps", type=int, default=TRAIN_STEPS, help="PPO steps per evaluation")
+    add("--train-steps", type=int, help=f"PPO steps per evaluation (the source's "
+        f"{TRAIN_STEPS:,}; on the walking task {WALK['train_steps']:,})")
     add("--task", default="distance", choices=em.list_tasks(),
         help="the PPO fitness's task: distance (the source's, the shipped figures) or walk")
     add("--confirm-controllers", type=int, default=32, help="controllers confirming a body")
     add("--budget", type=float, default=480,
         help="seconds: start no chunk after this (a device call's limit, less a margin)")
-    add("--data", type=Path, default=Path("docs/figures/reproduce"), help="the data files")
+    add("--data", type=Path, help="the data files (docs/figures/reproduce, and "
+        "reproduce_walk for the walking task)")
     add("--out", type=Path, default=Path("docs/figures"), help="the figures")
     add("--toy", action="store_true", help="the CPU smoke's size (and 320 PPO steps)")
     add("--draw", action="store_true", help="draw the figures from the data files")
@@ -317,6 +334,9 @@ def main(argv: list[str] | None = None) -> int:
     stages = list(STAGES) if "all" in args.stages else args.stages
     if unknown := [s for s in stages if s not in STAGES]:
         parser.error(f"unknown stages {unknown}; choose from all, {', '.join(STAGES)}")
+    walk = args.task == "walk"
+    args.train_steps = args.train_steps or (WALK["train_steps"] if walk else TRAIN_STEPS)
+    args.data = args.data or (WALK["data"] if walk else Path("docs/figures/reproduce"))
     if args.toy:
         args.train_steps, args.confirm_controllers = 320, 2
     jax.config.update("jax_default_matmul_precision", "highest")
