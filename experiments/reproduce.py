@@ -274,7 +274,8 @@ def draw(data: Path, out: Path) -> None:
                                                gridspec_kw={"width_ratios": [4, 4, 3]})
         colors = {agent: f"C{i}" for i, agent in enumerate(effects["agents"])}
         for i, (agent, e) in enumerate(effects["agents"].items()):
-            x, y = i - 0.2 + 0.1 * np.arange(e["seeds"]), np.asarray(e["confirmed"])
+            spread = 0.45 * np.arange(e["seeds"]) / max(e["seeds"] - 1, 1)  # left of the mean
+            x, y = i - 0.4 + spread, np.asarray(e["confirmed"])
             lo, hi = np.asarray(e["confirmed_ci95"]).T
             ax_m.errorbar(x, y, yerr=[y - lo, hi - y],
                           fmt="o", ms=4, capsize=2, color=colors[agent], alpha=0.6)
