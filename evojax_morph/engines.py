@@ -44,6 +44,8 @@ class Engine(NamedTuple):
     step(worlds, data, n) -> data n physics steps later (one engine call where it can);
       forward(worlds, data) -> data with positions and velocities propagated (after a reset).
     where(done, on_true, on_false) -> data: world by world, `on_true` where done (n,) is set.
+    foreign: its step is a foreign (FFI) call, which XLA's partitioner cannot split across
+      devices: a batch of bodies splits by `jax.shard_map` instead (`sharding.shard_batch`).
     """
 
     name: str
@@ -53,6 +55,7 @@ class Engine(NamedTuple):
     step: Callable[[Any, mjx.Data, int], mjx.Data]
     forward: Callable[[Any, mjx.Data], mjx.Data]
     where: Callable[[jax.Array, mjx.Data, mjx.Data], mjx.Data]
+    foreign: bool = False
 
 
 def _per_body(fn):
@@ -105,10 +108,17 @@ WARP = Engine(
     step=lambda model, data, n: _warp().steps(model, data, n),
     forward=_flat(mjx.forward),
     where=lambda done, on_true, on_false: _warp().where_worlds(done, on_true, on_false),
+    foreign=True,
 )
 
 _REGISTRY: dict[str, Engine] = {e.name: e for e in (JAX, WARP)}
 AUTO = "auto"
+
+
+def foreign(name: str) -> bool:
+    """Whether engine `name` steps by a foreign call (`Engine.foreign`); no check that it runs
+    here, so that a fitness can be split before it is built."""
+    return name in _REGISTRY and _REGISTRY[name].foreign
 
 
 def list_engines() -> list[str]:

@@ -12,6 +12,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
+from evojax_morph import engines
 from evojax_morph.fitnesses import FitnessConfig, FitnessResult, get_fitness
 from evojax_morph.morphology import Morphology
 from evojax_morph.ppo import Params
@@ -29,7 +30,8 @@ def make_fitness_fn(space: Space, cfg: FitnessConfig, mesh=None):
     `sharding.batch_mesh`).
     """
     init, evaluate_batch = get_fitness(cfg.kind).make(space, cfg)
-    return (lambda key: jnp.zeros(())) if init is None else init, shard_batch(evaluate_batch, mesh)
+    split = shard_batch(evaluate_batch, mesh, manual=engines.foreign(cfg.physics))
+    return (lambda key: jnp.zeros(())) if init is None else init, split
 
 
 @functools.lru_cache(maxsize=16)
@@ -39,8 +41,10 @@ def _compiled(space: Space, cfg: FitnessConfig, mesh):
     host can read them."""
     init, evaluate_batch = get_fitness(cfg.kind).make(space, cfg)
     out = replicated(mesh) if jax.process_count() > 1 else None
-    jit = lambda fn: jax.jit(shard_batch(fn, mesh), out_shardings=out)  # noqa: E731
-    return None if init is None else jit(jax.vmap(init)), jit(evaluate_batch)
+    jit = lambda fn, manual=False: jax.jit(shard_batch(fn, mesh, manual),  # noqa: E731
+                                          out_shardings=out)
+    return (None if init is None else jit(jax.vmap(init)),
+            jit(evaluate_batch, engines.foreign(cfg.physics)))
 
 
 def init_params(space: Space, keys: jax.Array, cfg: FitnessConfig = FitnessConfig()) -> Params:

@@ -38,7 +38,7 @@ def replicated(mesh: Mesh) -> NamedSharding:
     return NamedSharding(mesh, PartitionSpec())
 
 
-def shard_batch(fn: Callable, mesh: Mesh | None = None) -> Callable:
+def shard_batch(fn: Callable, mesh: Mesh | None = None, manual: bool = False) -> Callable:
     """`fn` with the leading (batch) axis of every argument and output split across `mesh`.
 
     Args:
@@ -46,16 +46,20 @@ def shard_batch(fn: Callable, mesh: Mesh | None = None) -> Callable:
         each element independent of the others (a vmapped per-morphology function).
       mesh: a one-axis mesh from `batch_mesh`; default: all devices. With one device `fn` is
         returned unchanged.
+      manual: split with `jax.shard_map` (each device runs `fn` on its own B / n elements) rather
+        than by XLA's partitioner: for a `fn` that calls a foreign function (MuJoCo Warp's FFI
+        call), which the partitioner cannot split and runs whole on every device.
     Returns:
       A function of the same signature, for use inside `jax.jit`. B need not divide the device
       count: the batch is padded with copies of its first element, whose results are dropped.
 
-    The split is a sharding constraint on the inputs and outputs, which XLA's partitioner
-    carries through `fn`. Each device computes its own elements; the one communication left
-    is a one-flag all-reduce per iteration of MJX's solver loop (a vmapped while loop runs
-    until every element converged, now on every device), so results equal one device's up to
-    rounding. `jax.shard_map` would drop that flag, but MJX's step under shard_map crashed
-    XLA's CUDA plugin on 2 GPUs (jax 0.11.2; see docs/benchmarks.md).
+    Without `manual` the split is a sharding constraint on the inputs and outputs, which XLA's
+    partitioner carries through `fn`. Each device computes its own elements; the one
+    communication left is a one-flag all-reduce per iteration of MJX's solver loop (a vmapped
+    while loop runs until every element converged, now on every device), so results equal one
+    device's up to rounding. `jax.shard_map` would drop that flag, but MJX's JAX step under
+    shard_map crashed XLA's CUDA plugin on 2 GPUs (jax 0.11.2; see docs/benchmarks.md), so the
+    JAX engine keeps the constraints and Warp, which needs it, takes shard_map.
     """
     mesh = batch_mesh() if mesh is None else mesh
     if mesh.size == 1:
@@ -64,13 +68,18 @@ def shard_batch(fn: Callable, mesh: Mesh | None = None) -> Callable:
     constrain = lambda tree: jax.tree.map(
         lambda x: jax.lax.with_sharding_constraint(x, split), tree
     )
+    if manual:  # every argument and output split on its leading axis; no collectives inside
+        body = jax.shard_map(fn, mesh=mesh, in_specs=PartitionSpec(AXIS),
+                             out_specs=PartitionSpec(AXIS), check_vma=False)
+    else:
+        body = lambda *args: constrain(fn(*constrain(args)))  # noqa: E731
 
     def wrapped(*args):
         batch = jax.tree.leaves(args)[0].shape[0]
         pad = -batch % mesh.size
         if pad:
             args = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], pad, 0)]), args)
-        out = constrain(fn(*constrain(args)))
+        out = body(*args)
         return jax.tree.map(lambda x: x[:batch], out) if pad else out
 
     return wrapped

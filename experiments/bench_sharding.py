@@ -12,12 +12,17 @@ on n devices over evals/s on one device at its full batch. Timings exclude compi
     python -m experiments.bench_sharding --per-device 2 --envs-per-device 2 \
       --dqn-train-steps 320 --repeats 1
   python -m experiments.bench_sharding --per-device 1024 --envs-per-device 256     # GPUs
+  python -m experiments.bench_sharding --per-device 1024 --physics warp \
+      --out docs/warp/sharding.jsonl                                           # Warp, GPUs
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import datetime
 import json
+from pathlib import Path
 
 import jax
 
@@ -26,20 +31,21 @@ from evojax_morph.agents import dqn
 from evojax_morph.pipeline import RunConfig, build
 from evojax_morph.sharding import batch_mesh
 from experiments.bench_fitness import STANDARD, median_time
+from experiments.build_tables import revision
 
 
-def bench_evaluate(space, devices, batch: int, repeats: int) -> float:
+def bench_evaluate(space, devices, batch: int, repeats: int, physics: str = "jax") -> float:
     keys = jax.random.split(jax.random.PRNGKey(batch), batch)
     morphs = jax.jit(jax.vmap(space.random_morphology, (0, None)), static_argnums=1)(keys, 3)
-    mesh = batch_mesh(devices)
-    t = median_time(lambda: em.evaluate(space, morphs, keys, STANDARD, mesh=mesh).fitness, repeats)
+    mesh, cfg = batch_mesh(devices), dataclasses.replace(STANDARD, physics=physics)
+    t = median_time(lambda: em.evaluate(space, morphs, keys, cfg, mesh=mesh).fitness, repeats)
     return batch / t
 
 
-def bench_dqn_step(space, devices, num_envs: int, train_steps: int, repeats: int) -> float:
-    run = RunConfig(
-        space=space.name, agent="ddqn", num_envs=num_envs, horizon=4, train_steps=train_steps
-    )
+def bench_dqn_step(space, devices, num_envs: int, train_steps: int, repeats: int,
+                   physics: str = "jax") -> float:
+    run = RunConfig(space=space.name, agent="ddqn", num_envs=num_envs, horizon=4,
+                    train_steps=train_steps, physics=physics)
     init, chunk, _ = build(run, batch_mesh(devices), dqn.DQNConfig(learning_starts=0)).agent
     state = jax.jit(init)(jax.random.PRNGKey(0))
     holder = [state]
@@ -66,9 +72,12 @@ def main():
     )
     parser.add_argument("--dqn-train-steps", type=int, default=5_000)
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--space", default="bad_walker")
+    parser.add_argument("--physics", default="jax", help="the fitness's engine: jax | warp")
+    parser.add_argument("--out", type=Path, help="append each row to this JSON-lines file")
     args = parser.parse_args()
     jax.config.update("jax_default_matmul_precision", "highest")
-    space = em.make_space("bad_walker")
+    space = em.make_space(args.space)
     devices = jax.devices()
     counts = sorted({1, len(devices)})
     rows = []
@@ -79,19 +88,18 @@ def main():
             runs.insert(1, (1, per * len(devices)))  # one device at the largest batch
         for n, batch in runs:
             if what == "evaluate":
-                rate = bench_evaluate(space, devices[:n], batch, args.repeats)
+                rate = bench_evaluate(space, devices[:n], batch, args.repeats, args.physics)
             else:
-                rate = bench_dqn_step(space, devices[:n], batch, args.dqn_train_steps, args.repeats)
-            rows.append(
-                {
-                    "what": what,
-                    "device": devices[0].device_kind,
-                    "devices": n,
-                    "batch": batch,
-                    "evals_per_s": rate,
-                }
-            )
+                rate = bench_dqn_step(space, devices[:n], batch, args.dqn_train_steps,
+                                      args.repeats, args.physics)
+            rows.append({"what": what, "space": space.name, "physics": args.physics,
+                         "device": devices[0].device_kind, "devices": n, "batch": batch,
+                         "evals_per_s": rate, "date": datetime.date.today().isoformat(),
+                         "revision": revision()})
             print(json.dumps(rows[-1]), flush=True)
+            if args.out:
+                with args.out.open("a") as f:
+                    f.write(json.dumps(rows[-1]) + "\n")
 
     print(f"\n{'what':>9} {'devices':>7} {'batch':>6} {'evals/s':>9} {'speed-up':>9}")
     for r in rows:
