@@ -69,6 +69,10 @@ def shard_batch(fn: Callable, mesh: Mesh | None = None, manual: bool = False) ->
         lambda x: jax.lax.with_sharding_constraint(x, split), tree
     )
     if manual:  # every argument and output split on its leading axis; no collectives inside
+        # Warp's FFI call under shard_map crashed XLA (a segfault while compiling, 2 H100s, jax
+        # 0.11.2) with the Shardy partitioner, even for physics steps alone, and ran with GSPMD
+        # (docs/benchmarks.md): programs compiled from here on use GSPMD.
+        jax.config.update("jax_use_shardy_partitioner", False)
         body = jax.shard_map(fn, mesh=mesh, in_specs=PartitionSpec(AXIS),
                              out_specs=PartitionSpec(AXIS), check_vma=False)
     else:

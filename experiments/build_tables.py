@@ -33,6 +33,7 @@ import argparse
 import dataclasses
 import datetime
 import json
+import os
 import subprocess
 import sys
 import time
@@ -56,7 +57,11 @@ def engine_flags() -> list[str]:
 
 
 def revision() -> str:
-    """The code's git revision, "+dirty" with uncommitted changes ("" outside git)."""
+    """The code's git revision, "+dirty" with uncommitted changes ("" outside git);
+    EVOJAX_MORPH_REVISION if set (a copy of the tree whose .git is not its own, as on the
+    device machines)."""
+    if os.environ.get("EVOJAX_MORPH_REVISION"):
+        return os.environ["EVOJAX_MORPH_REVISION"]
     root = Path(__file__).resolve().parents[1]
     try:
         rev = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
