@@ -2,6 +2,7 @@
 every stage runs, stops at its deadline with its agents' states saved, resumes from them, and
 leaves data files with the settings the figures are drawn from."""
 
+import argparse
 import json
 from pathlib import Path
 
@@ -86,3 +87,16 @@ def test_the_video_rebuilds_each_unroll_body_from_its_recorded_mutations():
     wrong = {**unroll, "actions": ["node 0: add_leg_end"] + unroll["actions"][1:]}
     with pytest.raises(ValueError, match="not the recorded"):
         fig7_video.rebuild(space, wrong)
+
+
+def test_the_walking_comparison_gives_every_method_10_seeds_of_equal_evaluations():
+    """The walking task's comparison (issue 44): at least 10 seeds a method, the same
+    evaluations a run for every method, whole episodes of the Constructor's horizon."""
+    walk = reproduce.groups(argparse.Namespace(task="walk", toy=False))
+    compare = [g for name, g in walk.items() if name.startswith("compare_")]
+    assert len(compare) == 4 and all(g.seeds >= 10 for g in compare)
+    assert len({g.num_envs * g.steps for g in compare}) == 1
+    horizon = make_space("constructor").horizon
+    assert all(g.steps % horizon == 0 and g.space == "constructor" for g in compare)
+    # the source's groups stay as they were under the distance task
+    assert reproduce.groups(argparse.Namespace(task="distance", toy=False)) == reproduce.GROUPS
