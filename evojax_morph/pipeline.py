@@ -102,8 +102,19 @@ class Greedy(NamedTuple):
 
     morphs: list  # the bodies (`Morphology`, on the host)
     fitness: list[float]  # their fitness
-    actions: list[str]  # the horizon mutations, named ("node 1: remove")
+    actions: list[str]  # the horizon mutations, named (`action_name`)
     params: list  # the controller each body was evaluated with (trained, for the PPO fitness)
+
+
+NO_OP = " (no-op)"
+
+
+def action_name(space, action: int, before, after) -> str:
+    """"node 1: remove", with NO_OP appended where the body did not change (a mutation of the
+    root that is a no-op, a move to where a limb already is)."""
+    node, mutation = divmod(int(action), space.num_mutations)
+    same = space.canonical(before) == space.canonical(after)
+    return f"node {node}: {space.mutation_names[mutation]}" + (NO_OP if same else "")
 
 
 def make_greedy_rollout(p: Pipeline):
@@ -133,10 +144,11 @@ def make_greedy_rollout(p: Pipeline):
         at = lambda tree, i: jax.tree.map(lambda x: x[i, 0], tree)  # noqa: E731
         m0, p0 = jax.tree.map(lambda x: x[0], (first_morph, first_params))
         steps = range(env1.horizon)
-        nm = space.num_mutations
-        names = [f"node {a // nm}: {space.mutation_names[a % nm]}" for a in actions]
+        bodies = [m0] + [at(morphs, i) for i in steps]
+        names = [action_name(space, a, before, after)
+                 for a, before, after in zip(actions, bodies, bodies[1:])]
         return Greedy(
-            morphs=[m0] + [at(morphs, i) for i in steps],
+            morphs=bodies,
             fitness=[float(first_fitness[0])] + [float(f) for f in fitness],
             actions=names,
             params=[p0] + [at(params, i) for i in steps],

@@ -27,6 +27,7 @@ import numpy as np
 import evojax_morph as em
 from evojax_morph import video
 from evojax_morph.controllers import SavedController
+from evojax_morph.pipeline import NO_OP
 from evojax_morph.spaces import Space, make_space
 from experiments.build_tables import revision
 
@@ -40,7 +41,7 @@ def rebuild(space: Space, unroll: dict):
     """
     m = space.initial()
     for action, recorded in zip(unroll["actions"], unroll["bodies"][1:], strict=True):
-        node, mutation = action.removeprefix("node ").split(": ")
+        node, mutation = action.removeprefix("node ").removesuffix(NO_OP).split(": ")
         m = space.mutate(m, int(node), space.mutation_names.index(mutation))
         if space.canonical(m) != recorded["body"]:
             raise ValueError(f"after {action!r} the body is {space.canonical(m)}, "

@@ -276,3 +276,19 @@ def test_length_walker_predefined_optimum_by_enumeration():
     assert float(space.predefined_fitness(space.initial())) == pytest.approx(-1 / 3)
     # m* is 6 mutations from m0; an episode leaves 2 steps to hold it.
     assert depths[best] == 6 and space.default_horizon == depths[best] + 2
+
+
+def test_a_mutation_that_changes_nothing_is_named_a_no_op():
+    """The greedy trajectory's names (`pipeline.action_name`): the root's mutations and a move
+    to where a foot already is say "(no-op)"; a move or a removal that changes the body does
+    not."""
+    from evojax_morph.pipeline import action_name
+
+    space = em.make_space("bad_walker")
+    m0, nm = space.initial(), space.num_mutations
+    name = lambda node, u, m=m0: action_name(space, node * nm + u, m, space.mutate(m, node, u))
+    assert name(0, bw.REMOVE) == "node 0: remove (no-op)"
+    moved = space.mutate(m0, bw.BACK, 0)
+    assert name(bw.BACK, 0) == f"node {bw.BACK}: to_back_end"
+    assert name(bw.BACK, 0, moved) == f"node {bw.BACK}: to_back_end (no-op)"
+    assert name(bw.LONG, bw.REMOVE) == f"node {bw.LONG}: remove"
