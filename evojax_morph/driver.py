@@ -54,6 +54,27 @@ def _why(e: Exception) -> str:
     return f"{type(e).__name__}: {text[:300]}"
 
 
+def _drop_closed_loop_reports() -> None:
+    """From now on, drop the "Event loop is closed" reports of reads cut short (idempotent).
+
+    A restore that fails (a damaged array) ends Orbax's event loop while TensorStore still
+    reads the checkpoint's other arrays; each read that completes then calls back into the
+    closed loop, and Python prints a traceback for it, one per array (about 270 for a run),
+    whenever it completes, also after the restore returned. They say nothing the one line
+    about the skipped checkpoint does not."""
+    previous = sys.unraisablehook
+    if getattr(previous, "drops_closed_loop", False):
+        return
+
+    def hook(report):
+        e = report.exc_value
+        if not (isinstance(e, RuntimeError) and str(e) == "Event loop is closed"):
+            previous(report)
+
+    hook.drops_closed_loop = True
+    sys.unraisablehook = hook
+
+
 def restore_newest(out: Path, restore_fn, log=print):
     """The state of the newest checkpoint of `out` that reads, newer ones that do not moved
     aside to OUT/checkpoints_damaged/STEP (kept, and out of the way of the steps the resumed
@@ -75,6 +96,7 @@ def restore_newest(out: Path, restore_fn, log=print):
             state = restore_fn(manager, step)
         except Exception as e:  # damaged data, metadata or a cut-short copy: TensorStore's
             skipped.append((step, _why(e)))  # DATA_LOSS, JSON and file errors alike
+            _drop_closed_loop_reports()
             continue
         break
     else:
