@@ -242,7 +242,8 @@ def draw(data: Path, out: Path) -> None:
                  ylabel="episode return (f_k - f_0)")
         ax_b.set(title="best single draw so far", xlabel="fitness evaluations per run")
         ax_r.legend()
-        save(fig, out, "fig6_ddqn_hidden", runs)
+        save(fig, out, "fig6_ddqn_hidden",
+             {"task": next(iter(runs.values())).get("task", "distance"), **runs})
     for name, title in (("fig5", "Double-DQN (width 100), Bad Walker"),
                         ("fig7", "actor-critic, Constructor")):
         if name in have:
@@ -253,7 +254,7 @@ def draw(data: Path, out: Path) -> None:
                 lo = [b["mean"] - b["ci95"][0] for b in u["bodies"]]
                 ax.errorbar(np.arange(len(mean)) + 0.05 * i, mean, yerr=lo, marker="o",
                             capsize=3, label=f"seed {i}")
-            ax.set(title=f"{title}: greedy unroll, confirmed fitness", xlabel="mutation",
+            ax.set(title=f"{title}:\ngreedy unroll, confirmed fitness", xlabel="mutation",
                    ylabel=f"mean of {r['confirm_controllers']} fresh controllers, 95% CI")
             ax.legend(fontsize=8)
             save(fig, out, name + "_unroll", r)
@@ -308,7 +309,7 @@ def draw(data: Path, out: Path) -> None:
                      f"evolution and random walks", fontsize=10)
         task = next(iter(runs.values())).get("task", "distance")
         name = "compare_constructor" + ("" if task == "distance" else f"_{task}")
-        save(fig, out, name, {"effects": effects, "runs": runs})
+        save(fig, out, name, {"task": task, "effects": effects, "runs": runs})
 
 
 def main(argv: list[str] | None = None) -> int:
