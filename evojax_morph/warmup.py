@@ -14,13 +14,14 @@ it off.
 Why not compile on the thread with Warp on a GPU: a Warp call captures a CUDA graph of XLA's
 stream whenever it meets new buffer addresses, and a compile that misses the persistent cache
 autotunes on that stream; one during the other breaks the capture (`Warp CUDA error 901`, then
-an error or an abort: `experiments/warp_thread_race.py compile` died so in 2 of 2 runs on an
-H100). Holding Warp's call lock while compiling deadlocked instead (the Warp call waits for the
-lock, the compile for the device), and Warp's JAX graph mode fails outright. So `wait` compiles
-such a program on the calling thread, where no Warp call can be running: XLA runs them inside
-the call that made them. Lowering launches no kernel and survived (`lower` mode: 3 of 3 runs,
-21 to 23 lowerings during 30 calls). The MJX functions it runs that set Warp's default device
-for the whole process hold Warp's call lock (`evojax_morph.warp.callback_lock`).
+an error or an abort: `experiments/warp_thread_race.py compile`, retired, at git 7a9dc9b, died
+so in 2 of 2 runs on an H100). Holding Warp's call lock while compiling deadlocked instead (the
+Warp call waits for the lock, the compile for the device), and Warp's JAX graph mode fails
+outright. So `wait` compiles such a program on the calling thread, where no Warp call can be
+running: XLA runs them inside the call that made them. Lowering launches no kernel and survived
+(`lower` mode: 3 of 3 runs, 21 to 23 lowerings during 30 calls). The MJX functions it runs that
+set Warp's default device for the whole process hold Warp's call lock
+(`evojax_morph.warp.callback_lock`).
 docs/benchmarks.md, "Compiling on the second thread breaks Warp's graph capture".
 """
 

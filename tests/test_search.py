@@ -160,24 +160,6 @@ def test_landscape_enumerates_ranks_and_round_trips(tmp_path):
             "fig4_predefined",
         ),
         (
-            "compare",
-            [
-                "--fitness",
-                "predefined",
-                "--steps",
-                "4",
-                "--chunk",
-                "4",
-                "--num-envs",
-                "4",
-                "--seeds",
-                "2",
-                "--landscape",
-                "LANDSCAPE",
-            ],
-            "compare_bad_walker",
-        ),
-        (
             "landscapes",
             ["--spaces", "bad_walker", "--train-steps", "160", "--seeds", "1", "--batch", "96"],
             "landscape_bad_walker",
@@ -187,30 +169,9 @@ def test_landscape_enumerates_ranks_and_round_trips(tmp_path):
 @pytest.mark.slow  # each script compiles its agents (landscapes: a PPO program): minutes in all
 def test_experiment_scripts_run_at_a_tiny_budget(script, args, output, tmp_path, monkeypatch):
     """`python -m experiments.SCRIPT ...` from the project root, in this process."""
-    if "LANDSCAPE" in args:
-        ls = landscape.measure(
-            em.make_space("bad_walker"),
-            em.FitnessConfig(kind="predefined"),
-            1,
-            jax.random.PRNGKey(0),
-        )
-        ls.save(tmp_path / "ls.json")
-        args = [str(tmp_path / "ls.json") if a == "LANDSCAPE" else a for a in args]
     monkeypatch.syspath_prepend(str(ROOT))
     monkeypatch.setattr(sys, "argv", [script, *args, "--out", str(tmp_path)])
     runpy.run_module(f"experiments.{script}", run_name="__main__")
     assert (tmp_path / f"{output}.png").stat().st_size > 0
     summary = json.loads((tmp_path / f"{output}.json").read_text())
     assert summary
-    if script == "compare":
-        assert all(
-            1 <= r <= 90 for m in ("ddqn", "a2c", "evolution", "random") for r in summary[m]["rank"]
-        )
-        # Same flags again: every method is resumed from the JSON, none rerun, the figure redrawn.
-        (tmp_path / f"{output}.png").unlink()
-        monkeypatch.setattr(
-            "experiments.common.run_agent", lambda *a: pytest.fail("a finished method was rerun")
-        )
-        runpy.run_module(f"experiments.{script}", run_name="__main__")
-        assert (tmp_path / f"{output}.png").stat().st_size > 0
-        assert json.loads((tmp_path / f"{output}.json").read_text())["ddqn"] == summary["ddqn"]
