@@ -70,9 +70,9 @@ GROUPS = {  # at least the evaluations per run and seeds the issue asks for
 # the walking task separates Constructor bodies (docs/results.md, "Bodies that walk"), so
 # 1,024 evaluations a run (32 evolutions x 4 episodes of 8 mutations) to fit 40 runs into about
 # 30 GPU-minutes. Drawn as compare_constructor_walk.
-WALK = {"train_steps": 50_000, "data": Path("docs/figures/reproduce_walk"),
-        **{f"compare_{a}": Group("constructor", a, 32, 32, seeds=10, chunk=4)
-           for a in ("a2c", "ddqn", "evolution", "random")}}
+WALK_TRAIN_STEPS, WALK_DATA = 50_000, Path("docs/figures/reproduce_walk")
+WALK_GROUPS = {f"compare_{a}": Group("constructor", a, 32, 32, seeds=10, chunk=4)
+               for a in ("a2c", "ddqn", "evolution", "random")}
 UNROLLS = {"fig5": "fig6_h100", "fig7": "fig8"}  # a figure of greedy unrolls: its agents' group
 STAGES = {  # a stage runs these groups and unrolls in turn; each group is a stage too
     "fig6_h20": ["fig6_h20"], "fig6_h100": ["fig6_h100"], "fig5": ["fig5"], "fig8": ["fig8"],
@@ -185,8 +185,7 @@ def unroll(name: str, of: str, args) -> bool:
 
 def groups(args) -> dict[str, Group]:
     """The run groups of --task: the source's, or on the walking task its comparison's."""
-    chosen = {**GROUPS, **{k: g for k, g in WALK.items() if isinstance(g, Group)}} \
-        if args.task == "walk" else GROUPS
+    chosen = {**GROUPS, **WALK_GROUPS} if args.task == "walk" else GROUPS
     return {k: toy(g) if args.toy else g for k, g in chosen.items()}
 
 
@@ -304,10 +303,9 @@ def draw(data: Path, out: Path) -> None:
                        "its confirmed mean (right)", fontsize=10)
         ax_g.set(ylabel="fitness of the returned body")
         first = next(iter(runs.values()))
-        fig.suptitle(f"Constructor, {first.get('task', 'distance')} task, "
-                     f"{first['evaluations_per_run']:,} evaluations a run: RL against "
-                     f"evolution and random walks", fontsize=10)
-        task = next(iter(runs.values())).get("task", "distance")
+        task = first.get("task", "distance")
+        fig.suptitle(f"Constructor, {task} task, {first['evaluations_per_run']:,} evaluations "
+                     "a run: RL against evolution and random walks", fontsize=10)
         name = "compare_constructor" + ("" if task == "distance" else f"_{task}")
         save(fig, out, name, {"task": task, "effects": effects, "runs": runs})
 
@@ -321,7 +319,7 @@ def main(argv: list[str] | None = None) -> int:
     add("--stages", nargs="+", default=[], help=f"all, or of {', '.join(STAGES)}")
     add("--physics", default="jax", help="the fitness's engine: jax | warp")
     add("--train-steps", type=int, help=f"PPO steps per evaluation (the source's "
-        f"{TRAIN_STEPS:,}; on the walking task {WALK['train_steps']:,})")
+        f"{TRAIN_STEPS:,}; on the walking task {WALK_TRAIN_STEPS:,})")
     add("--task", default="distance", choices=em.list_tasks(),
         help="the PPO fitness's task: distance (the source's, the shipped figures) or walk")
     add("--confirm-controllers", type=int, default=32, help="controllers confirming a body")
@@ -337,8 +335,8 @@ def main(argv: list[str] | None = None) -> int:
     if unknown := [s for s in stages if s not in STAGES]:
         parser.error(f"unknown stages {unknown}; choose from all, {', '.join(STAGES)}")
     walk = args.task == "walk"
-    args.train_steps = args.train_steps or (WALK["train_steps"] if walk else TRAIN_STEPS)
-    args.data = args.data or (WALK["data"] if walk else Path("docs/figures/reproduce"))
+    args.train_steps = args.train_steps or (WALK_TRAIN_STEPS if walk else TRAIN_STEPS)
+    args.data = args.data or (WALK_DATA if walk else Path("docs/figures/reproduce"))
     if args.toy:
         args.train_steps, args.confirm_controllers = 320, 2
     jax.config.update("jax_default_matmul_precision", "highest")
