@@ -7,6 +7,9 @@ largest batch, which shows whether one device was already full. Then the same fo
 environment step of the Double-DQN loop (mutate every body, evaluate the children, store,
 update the replicated agent) at --envs-per-device x n parallel evolutions. Speed-up = evals/s
 on n devices over evals/s on one device at its full batch. Timings exclude compilation.
+With --agreement N, instead: N random bodies x --seeds keys on one device and on all of them,
+whether the split changes the fitness in distribution (Spearman of the body means, and the
+mean difference over all draws with its 95% interval).
 
   XLA_FLAGS=--xla_force_host_platform_device_count=2 \
     python -m experiments.bench_sharding --per-device 2 --envs-per-device 2 \
@@ -14,6 +17,8 @@ on n devices over evals/s on one device at its full batch. Timings exclude compi
   python -m experiments.bench_sharding --per-device 1024 --envs-per-device 256     # GPUs
   python -m experiments.bench_sharding --per-device 1024 --physics warp \
       --out docs/warp/sharding.jsonl                                           # Warp, GPUs
+  python -m experiments.bench_sharding --agreement 64 --seeds 16 --physics warp \
+      --out docs/warp/sharding_agreement.json                                  # Warp, GPUs
 """
 
 from __future__ import annotations
@@ -25,9 +30,12 @@ import json
 from pathlib import Path
 
 import jax
+import numpy as np
+import scipy.stats
 
 import evojax_morph as em
 from evojax_morph.agents import dqn
+from evojax_morph.confirm import t_interval
 from evojax_morph.pipeline import RunConfig, build
 from evojax_morph.sharding import batch_mesh
 from experiments.bench_fitness import STANDARD, median_time
@@ -57,6 +65,27 @@ def bench_dqn_step(space, devices, num_envs: int, train_steps: int, repeats: int
     return num_envs / median_time(one_step, repeats)
 
 
+def agreement(space, devices, bodies: int, seeds: int, physics: str) -> dict:
+    """`bodies` random bodies, each trained from scratch with `seeds` keys, on devices[:1] and on
+    all `devices`: the same keys, so only the split differs (a trained fitness is not fixed by
+    its key across batches, fitness.evaluate: compare the distributions)."""
+    keys = jax.random.split(jax.random.PRNGKey(7), bodies)
+    morphs = jax.jit(jax.vmap(space.random_morphology, (0, None)), static_argnums=1)(keys, 3)
+    tile = lambda x: jax.numpy.repeat(x, seeds, 0)  # noqa: E731  body i at rows i*seeds...
+    morphs, keys = jax.tree.map(tile, morphs), jax.random.split(jax.random.PRNGKey(8), bodies * seeds)
+    cfg = dataclasses.replace(STANDARD, physics=physics)
+    f = {n: np.asarray(em.evaluate(space, morphs, keys, cfg, mesh=batch_mesh(devices[:n])).fitness)
+         .reshape(bodies, seeds) for n in sorted({1, len(devices)})}
+    one, many = f[1], f[len(devices)]
+    diff = many.mean(1) - one.mean(1)  # per body, the paired design's differences
+    return {"space": space.name, "physics": physics, "device": devices[0].device_kind,
+            "devices": len(devices), "bodies": bodies, "seeds": seeds,
+            "mean_1": float(one.mean()), "mean_n": float(many.mean()),
+            "difference": float(diff.mean()), "difference_ci95": t_interval(diff),
+            "spearman_body_means": float(scipy.stats.spearmanr(one.mean(1), many.mean(1)).statistic),
+            "date": datetime.date.today().isoformat(), "revision": revision()}
+
+
 def main():
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -75,10 +104,19 @@ def main():
     parser.add_argument("--space", default="bad_walker")
     parser.add_argument("--physics", default="jax", help="the fitness's engine: jax | warp")
     parser.add_argument("--out", type=Path, help="append each row to this JSON-lines file")
+    parser.add_argument("--agreement", type=int, default=0,
+                        help="bodies for the agreement check instead of timings (0: timings)")
+    parser.add_argument("--seeds", type=int, default=16, help="keys per body for --agreement")
     args = parser.parse_args()
     jax.config.update("jax_default_matmul_precision", "highest")
     space = em.make_space(args.space)
     devices = jax.devices()
+    if args.agreement:
+        row = agreement(space, devices, args.agreement, args.seeds, args.physics)
+        print(json.dumps(row))
+        if args.out:
+            args.out.write_text(json.dumps(row, indent=1) + "\n")
+        return
     counts = sorted({1, len(devices)})
     rows = []
     for what in ("evaluate", "dqn_step") if args.envs_per_device else ("evaluate",):
