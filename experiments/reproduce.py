@@ -39,7 +39,8 @@ import scipy.stats
 
 import evojax_morph as em
 from evojax_morph.confirm import t_interval
-from evojax_morph.pipeline import build, make_greedy_rollout
+from evojax_morph import plots
+from evojax_morph.pipeline import NO_OP, build, make_greedy_rollout
 from experiments.build_tables import revision
 from experiments.common import Setup, band, episode_returns, plt, run_agent, run_config, save
 
@@ -226,6 +227,45 @@ def compare_effects(runs: dict[str, dict]) -> dict:
             "interval": "agents: 95% t over seeds; differences: 95% Welch t over seeds"}
 
 
+def unroll_bodies(space, unroll: dict) -> list:
+    """The bodies of a greedy unroll from its data: m0, then each named action applied in turn
+    ("node 1: to_back_end", `pipeline.action_name`), each checked against the body it names."""
+    bodies = [space.initial()]
+    for action in unroll["actions"]:
+        node, mutation = action.removesuffix(NO_OP).removeprefix("node ").split(": ")
+        bodies.append(space.mutate(bodies[-1], int(node), space.mutation_names.index(mutation)))
+    names = [space.canonical(m) for m in bodies]
+    if names != [b["body"] for b in unroll["bodies"]]:
+        raise ValueError(f"the unroll's actions do not give its bodies: {names}")
+    return bodies
+
+
+def draw_unrolls(r: dict, title: str):
+    """Figures 5 and 7: each seed's greedy unroll as its confirmed fitness (top) and as its
+    bodies, one row a seed, each drawn with its confirmed mean (as the source draws them)."""
+    space, unrolls = em.make_space(r["space"]), r["unrolls"]
+    n = max(len(u["bodies"]) for u in unrolls)
+    fig = plt.figure(figsize=(max(6.0, 1.5 * n), 3.4 + 1.0 * len(unrolls)))
+    grid = fig.add_gridspec(1 + len(unrolls), n, height_ratios=[3.4] + [1.0] * len(unrolls))
+    ax = fig.add_subplot(grid[0, :])
+    for i, u in enumerate(unrolls):
+        mean = [b["mean"] for b in u["bodies"]]
+        lo = [b["mean"] - b["ci95"][0] for b in u["bodies"]]
+        ax.errorbar(np.arange(len(mean)) + 0.05 * i, mean, yerr=lo, marker="o",
+                    capsize=3, label=f"seed {i}")
+    ax.set(title=f"{title}:\ngreedy unroll, confirmed fitness", xlabel="mutation",
+           ylabel=f"mean of {r['confirm_controllers']}\nfresh controllers, 95% CI")
+    ax.legend(fontsize=8)
+    cells = [[fig.add_subplot(grid[1 + i, j]) for j in range(len(u["bodies"]))]
+             for i, u in enumerate(unrolls)]
+    fig.tight_layout()  # settle the axes' sizes before drawing in data units
+    for i, (u, row) in enumerate(zip(unrolls, cells)):
+        for j, (cell, m, b) in enumerate(zip(row, unroll_bodies(space, u), u["bodies"])):
+            plots.draw_morphology(cell, space, m)
+            cell.set_title(f"seed {i}: " * (j == 0) + f"{b['mean']:.3g}", fontsize=8)
+    return fig
+
+
 def draw(data: Path, out: Path) -> None:
     """The figures from the data files present."""
     load = lambda n: json.loads((data / f"{n}.json").read_text())  # noqa: E731
@@ -247,16 +287,7 @@ def draw(data: Path, out: Path) -> None:
                         ("fig7", "actor-critic, Constructor")):
         if name in have:
             r = load(name)
-            fig, ax = plt.subplots(figsize=(6, 3.6))
-            for i, u in enumerate(r["unrolls"]):
-                mean = [b["mean"] for b in u["bodies"]]
-                lo = [b["mean"] - b["ci95"][0] for b in u["bodies"]]
-                ax.errorbar(np.arange(len(mean)) + 0.05 * i, mean, yerr=lo, marker="o",
-                            capsize=3, label=f"seed {i}")
-            ax.set(title=f"{title}:\ngreedy unroll, confirmed fitness", xlabel="mutation",
-                   ylabel=f"mean of {r['confirm_controllers']} fresh controllers, 95% CI")
-            ax.legend(fontsize=8)
-            save(fig, out, name + "_unroll", r)
+            save(draw_unrolls(r, title), out, name + "_unroll", r)
     if "fig8" in have:
         r = load("fig8")
         fig, (ax_r, ax_e) = plt.subplots(1, 2, figsize=(10, 3.6))
