@@ -11,8 +11,9 @@ leading (K,) axis, all inherited by a child) and its fitness is their mean: one 
 noisy measure of a body, since a controller either finds a gait or does not
 (docs/benchmarks.md, "Reliability of the PPO fitness"). It is built from brax's PPO
 parts (networks, GAE, running observation statistics); the log-probability and entropy are our
-own, masked to the motors a body has, since brax's sum over every action dimension of the
-padded template. Parameter shapes are the same for every body of a space, so a child can start
+own (`evojax_morph.ppo_networks`, with the parameters and the loss; re-exported here), masked
+to the motors a body has, since brax's sum over every action dimension of the padded template.
+Parameter shapes are the same for every body of a space, so a child can start
 from its parent's controller (policy inheritance).
 
 The pieces, one factory each, as purejaxrl's scans nest: `make_train` (K controllers per body)
@@ -31,15 +32,21 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import optax
-from brax.training import distribution
 from brax.training.acme import running_statistics
 from brax.training.agents.ppo import losses as ppo_losses
-from brax.training.agents.ppo import networks as ppo_networks
 from flax import struct
 
 from evojax_morph.engines import Engine, get_engine, repeat_worlds
 from evojax_morph.locomotion import EnvState, Locomotion, TaskConfig
 from evojax_morph.morphology import Morphology, tree_select
+from evojax_morph.ppo_networks import (
+    Params,
+    Transition,
+    make_init,
+    make_loss,
+    make_networks,
+    masked_log_prob,
+)
 from evojax_morph.spaces import Space
 
 
@@ -83,24 +90,6 @@ class PPOConfig:
             raise ValueError("eval_episodes and controllers must be at least 1")
 
 
-class Params(NamedTuple):
-    """A controller: what a child inherits from its parent."""
-
-    normalizer: running_statistics.RunningStatisticsState
-    policy: dict
-    value: dict
-
-
-class Transition(NamedTuple):
-    obs: jax.Array  # (T, E, obs_size)
-    raw_action: jax.Array  # (T, E, A) pre-tanh
-    log_prob: jax.Array  # (T, E)
-    reward: jax.Array  # (T, E)
-    terminated: jax.Array  # (T, E) float
-    truncated: jax.Array  # (T, E) float
-    diverged: jax.Array  # (T, E) bool
-
-
 class Rollout(NamedTuple):
     """What carries over from one trajectory to the next, per world of L learners x E envs."""
 
@@ -123,47 +112,10 @@ class TrainResult:
     upright: jax.Array  # (): the fraction of an evaluation episode before a fall, mean
 
 
-def masked_log_prob(dist: distribution.NormalTanhDistribution, logits, raw_action, mask):
-    """log pi(a) summed over the active action dimensions only.
-
-    Args:
-      dist: brax's tanh-normal action distribution.
-      logits: (..., 2A) policy output.
-      raw_action: (..., A) pre-tanh action.
-      mask: (A,) bool, the motors the body has.
-    Returns:
-      (...,) log-probability of tanh(raw_action).
-    """
-    per_dim = dist.create_dist(logits).log_prob(raw_action)
-    per_dim -= distribution.TanhBijector().forward_log_det_jacobian(raw_action)
-    return jnp.sum(jnp.where(mask, per_dim, 0.0), axis=-1)
-
-
-def masked_entropy(dist: distribution.NormalTanhDistribution, logits, key, mask):
-    """Entropy of the tanh-normal over active dimensions, estimated with one sample as brax does."""
-    normal = dist.create_dist(logits)
-    per_dim = normal.entropy() + distribution.TanhBijector().forward_log_det_jacobian(
-        normal.sample(key)
-    )
-    return jnp.sum(jnp.where(mask, per_dim, 0.0), axis=-1)
-
-
-def _networks(env: Locomotion, cfg: PPOConfig):
-    return ppo_networks.make_ppo_networks(
-        env.obs_size,
-        env.action_size,
-        preprocess_observations_fn=running_statistics.normalize
-        if cfg.normalize_observations
-        else (lambda obs, _: obs),
-        policy_hidden_layer_sizes=cfg.policy_hidden,
-        value_hidden_layer_sizes=cfg.value_hidden,
-    )
-
-
 def make_policy(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig = PPOConfig()):
     """`policy(params, obs) -> action`: the deterministic actions (..., A) of one controller
     (no leading K axis) for (..., obs_size) observations, as the evaluation episodes act."""
-    networks = _networks(Locomotion(space, task_cfg), cfg)
+    networks = make_networks(Locomotion(space, task_cfg), cfg)
 
     def policy(params: Params, obs: jax.Array) -> jax.Array:
         logits = networks.policy_network.apply(params.normalizer, params.policy, obs)
@@ -216,7 +168,7 @@ def make_train(
     """
     cfg.validate()
     env = Locomotion(space, task_cfg)
-    networks = _networks(env, cfg)
+    networks = make_networks(env, cfg)
     train_learners = make_train_learners(space, env, get_engine(physics), networks, cfg)
 
     def train(keys: jax.Array, morphs: Morphology, params: Params) -> TrainResult:
@@ -244,26 +196,6 @@ def make_train(
             )
 
     return make_init(env, networks, cfg), train
-
-
-def make_init(env: Locomotion, networks, cfg: PPOConfig):
-    """`init(key) -> Params`: fresh parameters, one controller or K stacked along a leading axis."""
-
-    def init_one(key: jax.Array) -> Params:
-        key_policy, key_value = jax.random.split(key)
-        obs_spec = jax.ShapeDtypeStruct((env.obs_size,), jnp.zeros(()).dtype)
-        return Params(
-            normalizer=running_statistics.init_state(obs_spec),
-            policy=networks.policy_network.init(key_policy),
-            value=networks.value_network.init(key_value),
-        )
-
-    def init(key: jax.Array) -> Params:
-        if cfg.controllers == 1:
-            return init_one(key)
-        return jax.vmap(init_one)(jax.random.split(key, cfg.controllers))
-
-    return init
 
 
 _split2 = jax.vmap(jax.random.split)  # (L,) keys -> (L, 2) keys
@@ -381,29 +313,6 @@ def make_collect(env: Locomotion, engine: Engine, networks, cfg: PPOConfig):
         return jax.lax.scan(env_step, rollout, length=cfg.unroll_length)
 
     return collect
-
-
-def make_loss(networks, cfg: PPOConfig):
-    """`loss_fn(net, normalizer, batch, advantages, targets, mask, key) -> (loss, entropy)`: the
-    clipped PPO loss of one learner's minibatch (`Transition` of (M, ...) arrays, advantages and
-    value targets (M,)), log-probabilities and entropy over the motors in `mask` (A,) only."""
-    dist = networks.parametric_action_distribution
-    policy_apply, value_apply = networks.policy_network.apply, networks.value_network.apply
-
-    def loss_fn(net, normalizer, batch: Transition, advantages, targets, mask, key):
-        logits = policy_apply(normalizer, net["policy"], batch.obs)
-        log_prob = masked_log_prob(dist, logits, batch.raw_action, mask)
-        ratio = jnp.exp(log_prob - batch.log_prob)
-        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
-        clipped = jnp.clip(ratio, 1 - cfg.clip_eps, 1 + cfg.clip_eps)
-        policy_loss = -jnp.mean(jnp.minimum(ratio * advantages, clipped * advantages))
-        value = value_apply(normalizer, net["value"], batch.obs)
-        value_loss = jnp.mean((targets - value) ** 2)
-        entropy = jnp.mean(masked_entropy(dist, logits, key, mask))
-        loss = policy_loss + cfg.vf_coef * value_loss - cfg.entropy_cost * entropy
-        return loss, entropy
-
-    return loss_fn
 
 
 def make_learn(networks, optimizer: optax.GradientTransformation, cfg: PPOConfig):

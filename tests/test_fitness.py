@@ -247,7 +247,7 @@ def test_one_update_moves_every_layer_but_a_masked_motors_outputs():
     cfg = dataclasses.replace(CFG.ppo, num_envs=4, unroll_length=8, num_minibatches=2,
                               update_epochs=2)
     env = em.Locomotion(space, CFG.task)
-    networks = ppo._networks(env, cfg)
+    networks = ppo.make_networks(env, cfg)
     params = jax.jit(ppo.make_init(env, networks, cfg))(jax.random.PRNGKey(0))
     optimizer = optax.adam(cfg.learning_rate)
     learn = jax.jit(ppo.make_learn(networks, optimizer, cfg))

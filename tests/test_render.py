@@ -19,7 +19,7 @@ import pytest
 from PIL import Image
 
 import evojax_morph as em
-from evojax_morph import bodylog, controllers, driver, ppo, render, video
+from evojax_morph import bodylog, controllers, driver, opengl, ppo, render, video
 from evojax_morph.pipeline import Greedy, RunConfig, build
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -237,7 +237,7 @@ def test_mujoco_gl_chosen_without_a_display():
     """With MUJOCO_GL unset and no display, `auto` draws with MuJoCo on the first of EGL and
     OSMesa that MuJoCo's own Renderer draws with here, and says which; with neither, matplotlib
     and why. MUJOCO_GL, when set, is kept."""
-    works = [gl for gl in video.GL_FALLBACKS
+    works = [gl for gl in opengl.GL_FALLBACKS
              if "DREW" in _python(_MUJOCO_ALONE, MUJOCO_GL=gl).stdout]
     proc = _python(_DRAW)
     assert "DRAWN" in proc.stdout, proc.stderr[-2000:]
@@ -248,7 +248,7 @@ def test_mujoco_gl_chosen_without_a_display():
         assert f"DRAWN mujoco ({works[0]}) 2 (48, 64, 3) True" in proc.stdout
     else:
         assert "DRAWN matplotlib 2 (48, 64, 3) True" in proc.stdout
-        assert all(f"{gl}: " in proc.stdout for gl in video.GL_FALLBACKS)
+        assert all(f"{gl}: " in proc.stdout for gl in opengl.GL_FALLBACKS)
 
 
 def test_gl_fallbacks_in_order_then_matplotlib(run_dir, monkeypatch, tmp_path):
@@ -262,17 +262,17 @@ def test_gl_fallbacks_in_order_then_matplotlib(run_dir, monkeypatch, tmp_path):
 
     for display, expected in [(None, ["egl", "osmesa"]), (":0", ["glfw", "egl", "osmesa"])]:
         tried.clear()
-        monkeypatch.setattr(video, "_GL_CHOICE", [])
+        monkeypatch.setattr(opengl, "_GL_CHOICE", [])
         monkeypatch.delenv("MUJOCO_GL", raising=False)
         monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
         if display:
             monkeypatch.setenv("DISPLAY", display)
         else:
             monkeypatch.delenv("DISPLAY", raising=False)
-        name, context, notes = video.choose_gl(probe)
+        name, context, notes = opengl.choose_gl(probe)
         assert (name, context) == (None, None) and tried == expected
         assert all(f"{gl}: {gl} failed here" in notes for gl in expected)
-        assert video.choose_gl(probe)[2] == notes and tried == expected  # chosen once
+        assert opengl.choose_gl(probe)[2] == notes and tried == expected  # chosen once
 
     out, *_ = run_dir
     shown = em.render_video(out, "best", tmp_path / "walk", **dict(TINY_VIDEO, backend="auto"))

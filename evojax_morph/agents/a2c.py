@@ -91,43 +91,13 @@ def masked_entropy(logits: jax.Array, mask: jax.Array) -> jax.Array:
     return -jnp.sum(jnp.where(mask, jnp.exp(logp) * logp, 0.0), -1)
 
 
-def make_policy(env: EvolutionEnv, cfg: A2CConfig) -> Policy:
-    """The actor-critic's acting and learning; scores are the policy logits."""
-    space = env.space
-    net = ActorCritic(cfg.hidden, cfg.layers, space.num_mutations)
-    num_kinds, num_sites = len(space.kind_names), len(space.site_names)
-    optimizer = optax.chain(
-        optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate)
-    )
-
-    def apply(params, obs: Observation):
-        """(N, A) logits and (N,) values of a batch of observations."""
-
-        def one(morph, progress):
-            return net.apply(params, morph, node_features(morph, progress, num_kinds, num_sites))
-
-        return jax.vmap(one)(obs.morph, obs.progress)
-
-    def init(keys: jax.Array, obs: Observation) -> A2CLearner:
-        single = jax.tree.map(lambda x: x[0], obs)
-        feats = node_features(single.morph, single.progress, num_kinds, num_sites)
-        params = net.init(keys[0], single.morph, feats)
-        t, n = cfg.unroll, env.num_envs
-        unroll = Unroll(
-            obs=jax.tree.map(lambda x: jnp.zeros((t,) + x.shape, x.dtype), obs),
-            action=jnp.zeros((t, n), jnp.int32),
-            reward=jnp.zeros((t, n)),
-            done=jnp.zeros((t, n), bool),
-        )
-        return A2CLearner(params, optimizer.init(params), unroll, jnp.zeros(()), jnp.zeros(()))
-
-    def act(learner: A2CLearner, keys: jax.Array, obs: Observation, step):
-        """A sample of the softmax over valid actions."""
-        logits, _ = apply(learner.params, obs)
-        action = jax.random.categorical(keys[0], jnp.where(obs.mask, logits, NEG))
-        return action.astype(jnp.int32), {"entropy": jnp.mean(masked_entropy(logits, obs.mask))}
+def make_loss_fn(apply, cfg: A2CConfig):
+    """`loss_fn(params, unroll, last_obs) -> (loss, value_loss)`, with GAE advantages over the
+    unroll bootstrapped from `last_obs`; `apply(params, obs)` gives (N, A) logits and (N,)
+    values."""
 
     def loss_fn(params, unroll: Unroll, last_obs: Observation):
+        """The actor-critic loss of a full unroll and its value term (before value_cost)."""
         flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), unroll.obs)
         logits, values = apply(params, flat)
         t, n = unroll.action.shape
@@ -150,6 +120,47 @@ def make_policy(env: EvolutionEnv, cfg: A2CConfig) -> Policy:
         entropy = jnp.mean(masked_entropy(logits, unroll.obs.mask))
         loss = policy_loss + cfg.value_cost * value_loss - cfg.entropy_cost * entropy
         return loss, value_loss
+
+    return loss_fn
+
+
+def make_policy(env: EvolutionEnv, cfg: A2CConfig) -> Policy:
+    """The actor-critic's acting and learning; scores are the policy logits."""
+    space = env.space
+    net = ActorCritic(cfg.hidden, cfg.layers, space.num_mutations)
+    num_kinds, num_sites = len(space.kind_names), len(space.site_names)
+    optimizer = optax.chain(
+        optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate)
+    )
+
+    def apply(params, obs: Observation):
+        """(N, A) logits and (N,) values of a batch of observations."""
+
+        def one(morph, progress):
+            return net.apply(params, morph, node_features(morph, progress, num_kinds, num_sites))
+
+        return jax.vmap(one)(obs.morph, obs.progress)
+
+    loss_fn = make_loss_fn(apply, cfg)
+
+    def init(keys: jax.Array, obs: Observation) -> A2CLearner:
+        single = jax.tree.map(lambda x: x[0], obs)
+        feats = node_features(single.morph, single.progress, num_kinds, num_sites)
+        params = net.init(keys[0], single.morph, feats)
+        t, n = cfg.unroll, env.num_envs
+        unroll = Unroll(
+            obs=jax.tree.map(lambda x: jnp.zeros((t,) + x.shape, x.dtype), obs),
+            action=jnp.zeros((t, n), jnp.int32),
+            reward=jnp.zeros((t, n)),
+            done=jnp.zeros((t, n), bool),
+        )
+        return A2CLearner(params, optimizer.init(params), unroll, jnp.zeros(()), jnp.zeros(()))
+
+    def act(learner: A2CLearner, keys: jax.Array, obs: Observation, step):
+        """A sample of the softmax over valid actions."""
+        logits, _ = apply(learner.params, obs)
+        action = jax.random.categorical(keys[0], jnp.where(obs.mask, logits, NEG))
+        return action.astype(jnp.int32), {"entropy": jnp.mean(masked_entropy(logits, obs.mask))}
 
     def learn(learner: A2CLearner, keys: jax.Array, tr: Transition, step):
         del keys

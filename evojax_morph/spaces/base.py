@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from evojax_morph import physics
+from evojax_morph import mjcf, physics
 from evojax_morph.morphology import Morphology, format_tree
 from evojax_morph.physics import mjx
 
@@ -199,7 +199,7 @@ class Space(abc.ABC):
                 limb_active=jnp.ones_like(full.limb_active),
                 geom_active=jnp.ones_like(full.geom_active),
             )
-            return physics.compile_template(self.plan, full, f"{self.name}_template")
+            return mjcf.compile_template(self.plan, full, f"{self.name}_template")
 
     @functools.cached_property
     def _index(self) -> physics.TemplateIndex:
@@ -226,7 +226,7 @@ class Space(abc.ABC):
         """A standalone MJCF of `m` alone, without padding, named as in the template."""
         if m.active.ndim != 1:
             raise ValueError("to_mjcf takes one morphology, not a batch")
-        return physics.write_mjcf(self.plan, self.layout(m), self.name, padded=False)
+        return mjcf.write_mjcf(self.plan, self.layout(m), self.name, padded=False)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(max_nodes={self.max_nodes})"

@@ -112,12 +112,70 @@ def pretrain(
     copied). Their own rollouts, drawn once, measure the classifier every generation.
     """
     tame = Tame(space, cfg)
-    classifier = tame.classifier
     held_keys = {space.canonical(m) for m in held_out}
+    if space.canonical(jax.device_get(space.initial())) in held_keys:
+        raise ValueError("m0 cannot be held out: every genealogy starts from it")
+    rollouts = _make_rollouts(tame, population)
+    child_of = _make_child_of(space, held_keys)
+
+    # The genealogy: every body in order of birth, its rollouts in a buffer of fixed capacity
+    # (so that training and scoring compile once); `count` bodies are filled.
+    key, k_init, k_held, k_roll = jax.random.split(key, 4)
+    bodies = _first_bodies(space, k_init, 2 * population, walk_length, child_of)
+    capacity = (generations + 1) * population
+    buffer, morphs = _genealogy(rollouts(k_roll, bodies), stack(bodies), capacity)
+    held = (stack(list(held_out)), rollouts(k_held, held_out)) if held_out else None
+
+    params = init_classifier(space, cfg, jax.random.fold_in(key, 1))
+    opt = optax.adam(learning_rate)
+    opt_state = opt.init(params)
+    train = _make_train(tame.classifier, cfg, opt, batch_size)
+    measure = _make_measure(tame.classifier, cfg)
+
+    history = []
+    bar = tqdm(range(generations), desc=f"TAME {space.name}", disable=not progress)
+    for gen in bar:
+        count = len(bodies)
+        steps = epochs * max(1, math.ceil(count * cfg.episodes / batch_size))
+        key, k_train, k_mut, k_roll = jax.random.split(key, 4)
+        params, opt_state, loss = train(params, opt_state, morphs, buffer, count, steps, k_train)
+        seen, fit = measure(params, morphs, buffer, count)
+        row = _history_row(space, cfg, gen, bodies, loss, seen, fit)
+        if held is not None:
+            unseen, _ = measure(params, *held, len(held_out))
+            row.update(held_out_loglik=unseen["loglik"], held_out_accuracy=unseen["accuracy"])
+        history.append(row)
+        bar.set_postfix(
+            train_acc=f"{row['train_accuracy']:.2f}",
+            held_out_acc=f"{row.get('held_out_accuracy', np.nan):.2f}",
+        )
+        if gen + 1 == generations:
+            break
+        children = _children(child_of, bodies, fit, population, k_mut)
+        new = rollouts(k_roll, children), stack(children)
+        buffer, morphs = _put(count, (buffer, morphs), new)
+        bodies += children
+
+    # Fresh rollouts of the genealogy's bodies tell overfitting to rollouts from overfitting to
+    # bodies.
+    fresh = rollouts(jax.random.fold_in(key, 2), bodies)
+    seen_fresh, _ = measure(params, morphs, fresh, len(bodies))
+    history[-1].update(
+        train_fresh_loglik=seen_fresh["loglik"], train_fresh_accuracy=seen_fresh["accuracy"]
+    )
+    train_keys = sorted({space.canonical(m) for m in bodies})
+    assert not held_keys & set(train_keys), "a held-out body entered the genealogy"
+    return Pretrained(
+        space.name, cfg, jax.device_get(params), history, train_keys, sorted(held_keys)
+    )
+
+
+def _make_rollouts(tame: Tame, population: int):
+    """`rollouts(key, bodies) -> Rollouts` of a list of bodies, `population` at a time: one
+    compiled shape."""
     rollout_batch = jax.jit(jax.vmap(tame.rollout))
 
     def rollouts(key, bodies) -> Rollouts:
-        """Rollouts of a list of bodies, `population` at a time: one compiled shape."""
         bodies = list(jax.tree.map(np.asarray, b) for b in bodies)
         n = len(bodies)
         bodies += [bodies[0]] * (-n % population)
@@ -128,6 +186,12 @@ def pretrain(
         ]
         return jax.tree.map(lambda *x: jnp.concatenate(x)[:n], *parts)
 
+    return rollouts
+
+
+def _make_child_of(space: Space, held_keys: set):
+    """`child_of(key, parent) -> Morphology`: a random mutation of `parent` whose shape is not in
+    `held_keys`, drawn up to 20 times; then `parent` itself."""
     mutate = jax.jit(space.random_mutation)
 
     def child_of(key, parent) -> Morphology:
@@ -137,14 +201,14 @@ def pretrain(
                 return child
         return parent
 
-    # The genealogy: every body in order of birth, its rollouts in a buffer of fixed capacity
-    # (so that training and scoring compile once); `count` bodies are filled.
-    key, k_init, k_held, k_roll = jax.random.split(key, 4)
+    return child_of
+
+
+def _first_bodies(space: Space, key, num: int, walk_length: int, child_of) -> list[Morphology]:
+    """`num` walks of 0..`walk_length` mutations (`child_of`) from m0, one key each."""
     m0 = jax.device_get(space.initial())
-    if space.canonical(m0) in held_keys:
-        raise ValueError("m0 cannot be held out: every genealogy starts from it")
     bodies = []
-    for k in jax.random.split(k_init, 2 * population):
+    for k in jax.random.split(key, num):
         k_len, k_walk = jax.random.split(k)
         m = m0
         for k_step in jax.random.split(
@@ -152,20 +216,35 @@ def pretrain(
         ):
             m = child_of(k_step, m)
         bodies.append(m)
-    capacity = (generations + 1) * population
-    new = rollouts(k_roll, bodies)
-    buffer = jax.tree.map(
-        lambda x: jnp.zeros((capacity, *x.shape[1:]), x.dtype).at[: len(bodies)].set(x), new
-    )
-    morphs = jax.tree.map(
-        lambda x: jnp.repeat(x[:1], capacity, 0).at[: len(bodies)].set(x), stack(bodies)
-    )
-    held = rollouts(k_held, held_out) if held_out else None
-    held_morphs = stack(list(held_out)) if held_out else None
+    return bodies
 
-    params = init_classifier(space, cfg, jax.random.fold_in(key, 1))
-    opt = optax.adam(learning_rate)
-    opt_state = opt.init(params)
+
+def _children(child_of, bodies, fit, population: int, key) -> list[Morphology]:
+    """One mutation (`child_of`) of each of the `population` fittest `bodies` by `fit`."""
+    parents = np.argsort(-fit, kind="stable")[:population]
+    return [child_of(k, bodies[i]) for i, k in zip(parents, jax.random.split(key, len(parents)))]
+
+
+def _put(count: int, trees, new):
+    """`trees` with rows count .. count + len(`new`) - 1 of every leaf set to `new`'s."""
+    n = len(jax.tree.leaves(new)[0])
+    return jax.tree.map(lambda a, b: a.at[count : count + n].set(b), trees, new)
+
+
+def _genealogy(rollouts: Rollouts, morphs: Morphology, capacity: int):
+    """The buffer of `capacity` bodies' rollouts and their morphologies, filled with the first
+    `len(rollouts)` (the rest: zero rollouts, copies of the first body)."""
+    n = len(jax.tree.leaves(morphs)[0])
+    buffer = jax.tree.map(
+        lambda x: jnp.zeros((capacity, *x.shape[1:]), x.dtype).at[:n].set(x), rollouts
+    )
+    morphs = jax.tree.map(lambda x: jnp.repeat(x[:1], capacity, 0).at[:n].set(x), morphs)
+    return buffer, morphs
+
+
+def _make_train(classifier, cfg: TameConfig, opt, batch_size: int):
+    """The jitted `train(params, opt_state, morphs, buffer, count, steps, key) -> (params,
+    opt_state, mean loss)`."""
 
     def loss_fn(params, m, states, labels, labelled):
         """Minus the mean over samples of log q per labelled motor."""
@@ -197,6 +276,13 @@ def pretrain(
         params, opt_state, total = jax.lax.fori_loop(0, steps, step, (params, opt_state, 0.0))
         return params, opt_state, total / steps
 
+    return train
+
+
+def _make_measure(classifier, cfg: TameConfig):
+    """`measure(params, morphs, rollouts, count) -> ({"loglik", "accuracy"}, F per body)` over
+    the first `count` bodies, the means weighted to bodies with motors."""
+
     @jax.jit
     def score(params, morphs, rollouts):
         """Per body: F, mean log-likelihood per labelled motor, accuracy, and whether it has
@@ -220,53 +306,19 @@ def pretrain(
         w = motors / max(motors.sum(), 1)  # bodies without motors have nothing to predict
         return {"loglik": float(np.sum(loglik * w)), "accuracy": float(np.sum(acc * w))}, f
 
-    history = []
-    bar = tqdm(range(generations), desc=f"TAME {space.name}", disable=not progress)
-    for gen in bar:
-        count = len(bodies)
-        steps = epochs * max(1, math.ceil(count * cfg.episodes / batch_size))
-        key, k_train, k_mut, k_roll = jax.random.split(key, 4)
-        params, opt_state, loss = train(params, opt_state, morphs, buffer, count, steps, k_train)
-        seen, fit = measure(params, morphs, buffer, count)
-        row = {
-            "generation": gen,
-            "bodies": count,
-            "distinct_bodies": len({space.canonical(m) for m in bodies}),
-            "loss": float(loss),
-            "train_loglik": seen["loglik"],
-            "train_accuracy": seen["accuracy"],
-            "chance_loglik": -math.log(cfg.num_primitives),
-            "chance_accuracy": 1 / cfg.num_primitives,
-            "best_fitness": float(fit.max()),
-        }
-        if held is not None:
-            unseen, _ = measure(params, held_morphs, held, len(held_out))
-            row.update(held_out_loglik=unseen["loglik"], held_out_accuracy=unseen["accuracy"])
-        history.append(row)
-        bar.set_postfix(
-            train_acc=f"{row['train_accuracy']:.2f}",
-            held_out_acc=f"{row.get('held_out_accuracy', np.nan):.2f}",
-        )
-        if gen + 1 == generations:
-            break
-        parents = np.argsort(-fit, kind="stable")[:population]
-        children = [
-            child_of(k, bodies[i]) for i, k in zip(parents, jax.random.split(k_mut, len(parents)))
-        ]
-        new = rollouts(k_roll, children)
-        put = lambda a, b: a.at[count : count + len(children)].set(b)  # noqa: B023
-        buffer, morphs = jax.tree.map(put, buffer, new), jax.tree.map(put, morphs, stack(children))
-        bodies += children
+    return measure
 
-    # Fresh rollouts of the genealogy's bodies tell overfitting to rollouts from overfitting to
-    # bodies.
-    fresh = rollouts(jax.random.fold_in(key, 2), bodies)
-    seen_fresh, _ = measure(params, morphs, fresh, len(bodies))
-    history[-1].update(
-        train_fresh_loglik=seen_fresh["loglik"], train_fresh_accuracy=seen_fresh["accuracy"]
-    )
-    train_keys = sorted({space.canonical(m) for m in bodies})
-    assert not held_keys & set(train_keys), "a held-out body entered the genealogy"
-    return Pretrained(
-        space.name, cfg, jax.device_get(params), history, train_keys, sorted(held_keys)
-    )
+
+def _history_row(space: Space, cfg: TameConfig, gen, bodies, loss, seen, fit) -> dict:
+    """One generation's row of `Pretrained.history` (the held-out columns are added after)."""
+    return {
+        "generation": gen,
+        "bodies": len(bodies),
+        "distinct_bodies": len({space.canonical(m) for m in bodies}),
+        "loss": float(loss),
+        "train_loglik": seen["loglik"],
+        "train_accuracy": seen["accuracy"],
+        "chance_loglik": -math.log(cfg.num_primitives),
+        "chance_accuracy": 1 / cfg.num_primitives,
+        "best_fitness": float(fit.max()),
+    }

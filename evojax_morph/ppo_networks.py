@@ -1,0 +1,123 @@
+"""The inner PPO's networks: a controller's parameters, the masked log-probability and entropy,
+the clipped loss.
+
+brax's PPO networks (`make_networks`) act on the padded template's whole action vector; the
+log-probability and entropy here sum over the motors a body has only (brax's sum over every
+action dimension). `evojax_morph.ppo` trains them and re-exports these names.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from brax.training import distribution
+from brax.training.acme import running_statistics
+from brax.training.agents.ppo import networks as brax_networks
+
+from evojax_morph.locomotion import Locomotion
+
+if TYPE_CHECKING:
+    from evojax_morph.ppo import PPOConfig
+
+
+class Params(NamedTuple):
+    """A controller: what a child inherits from its parent."""
+
+    normalizer: running_statistics.RunningStatisticsState
+    policy: dict
+    value: dict
+
+
+class Transition(NamedTuple):
+    """One learner's trajectory of T steps in E worlds: what its PPO update learns from."""
+
+    obs: jax.Array  # (T, E, obs_size)
+    raw_action: jax.Array  # (T, E, A) pre-tanh
+    log_prob: jax.Array  # (T, E)
+    reward: jax.Array  # (T, E)
+    terminated: jax.Array  # (T, E) float
+    truncated: jax.Array  # (T, E) float
+    diverged: jax.Array  # (T, E) bool
+
+
+def masked_log_prob(dist: distribution.NormalTanhDistribution, logits, raw_action, mask):
+    """log pi(a) summed over the active action dimensions only.
+
+    Args:
+      dist: brax's tanh-normal action distribution.
+      logits: (..., 2A) policy output.
+      raw_action: (..., A) pre-tanh action.
+      mask: (A,) bool, the motors the body has.
+    Returns:
+      (...,) log-probability of tanh(raw_action).
+    """
+    per_dim = dist.create_dist(logits).log_prob(raw_action)
+    per_dim -= distribution.TanhBijector().forward_log_det_jacobian(raw_action)
+    return jnp.sum(jnp.where(mask, per_dim, 0.0), axis=-1)
+
+
+def masked_entropy(dist: distribution.NormalTanhDistribution, logits, key, mask):
+    """Entropy of the tanh-normal over active dimensions, estimated with one sample as brax does."""
+    normal = dist.create_dist(logits)
+    per_dim = normal.entropy() + distribution.TanhBijector().forward_log_det_jacobian(
+        normal.sample(key)
+    )
+    return jnp.sum(jnp.where(mask, per_dim, 0.0), axis=-1)
+
+
+def make_networks(env: Locomotion, cfg: PPOConfig):
+    """brax's PPO networks for the task's observations and actions, as `cfg` sizes them."""
+    return brax_networks.make_ppo_networks(
+        env.obs_size,
+        env.action_size,
+        preprocess_observations_fn=running_statistics.normalize
+        if cfg.normalize_observations
+        else (lambda obs, _: obs),
+        policy_hidden_layer_sizes=cfg.policy_hidden,
+        value_hidden_layer_sizes=cfg.value_hidden,
+    )
+
+
+def make_init(env: Locomotion, networks, cfg: PPOConfig):
+    """`init(key) -> Params`: fresh parameters, one controller or K stacked along a leading axis."""
+
+    def init_one(key: jax.Array) -> Params:
+        key_policy, key_value = jax.random.split(key)
+        obs_spec = jax.ShapeDtypeStruct((env.obs_size,), jnp.zeros(()).dtype)
+        return Params(
+            normalizer=running_statistics.init_state(obs_spec),
+            policy=networks.policy_network.init(key_policy),
+            value=networks.value_network.init(key_value),
+        )
+
+    def init(key: jax.Array) -> Params:
+        if cfg.controllers == 1:
+            return init_one(key)
+        return jax.vmap(init_one)(jax.random.split(key, cfg.controllers))
+
+    return init
+
+
+def make_loss(networks, cfg: PPOConfig):
+    """`loss_fn(net, normalizer, batch, advantages, targets, mask, key) -> (loss, entropy)`: the
+    clipped PPO loss of one learner's minibatch (`Transition` of (M, ...) arrays, advantages and
+    value targets (M,)), log-probabilities and entropy over the motors in `mask` (A,) only."""
+    dist = networks.parametric_action_distribution
+    policy_apply, value_apply = networks.policy_network.apply, networks.value_network.apply
+
+    def loss_fn(net, normalizer, batch: Transition, advantages, targets, mask, key):
+        logits = policy_apply(normalizer, net["policy"], batch.obs)
+        log_prob = masked_log_prob(dist, logits, batch.raw_action, mask)
+        ratio = jnp.exp(log_prob - batch.log_prob)
+        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+        clipped = jnp.clip(ratio, 1 - cfg.clip_eps, 1 + cfg.clip_eps)
+        policy_loss = -jnp.mean(jnp.minimum(ratio * advantages, clipped * advantages))
+        value = value_apply(normalizer, net["value"], batch.obs)
+        value_loss = jnp.mean((targets - value) ** 2)
+        entropy = jnp.mean(masked_entropy(dist, logits, key, mask))
+        loss = policy_loss + cfg.vf_coef * value_loss - cfg.entropy_cost * entropy
+        return loss, entropy
+
+    return loss_fn
