@@ -32,21 +32,26 @@ from evojax_morph.spaces import Space, make_space
 from experiments.build_tables import revision
 
 
-def rebuild(space: Space, unroll: dict):
-    """The final body of a recorded greedy unroll (`{"actions": ["node 0: add_leg_start",
-    ...], "bodies": [{"body": canonical name}, ...]}`), by replaying its mutations from m0.
+def unroll_bodies(space: Space, unroll: dict) -> list:
+    """The bodies of a recorded greedy unroll (`{"actions": ["node 0: add_leg_start", ...],
+    "bodies": [{"body": canonical name}, ...]}`), m0 first, by replaying its mutations.
 
     Raises:
       ValueError: a replayed body's canonical name differs from the recorded one.
     """
-    m = space.initial()
+    bodies = [space.initial()]
     for action, recorded in zip(unroll["actions"], unroll["bodies"][1:], strict=True):
         node, mutation = action.removeprefix("node ").removesuffix(NO_OP).split(": ")
-        m = space.mutate(m, int(node), space.mutation_names.index(mutation))
-        if space.canonical(m) != recorded["body"]:
-            raise ValueError(f"after {action!r} the body is {space.canonical(m)}, "
+        bodies.append(space.mutate(bodies[-1], int(node), space.mutation_names.index(mutation)))
+        if space.canonical(bodies[-1]) != recorded["body"]:
+            raise ValueError(f"after {action!r} the body is {space.canonical(bodies[-1])}, "
                              f"not the recorded {recorded['body']}")
-    return m
+    return bodies
+
+
+def rebuild(space: Space, unroll: dict):
+    """The final body of a recorded greedy unroll (`unroll_bodies`)."""
+    return unroll_bodies(space, unroll)[-1]
 
 
 def main(argv: list[str] | None = None) -> int:

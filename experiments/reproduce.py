@@ -38,11 +38,12 @@ import numpy as np
 import scipy.stats
 
 import evojax_morph as em
-from evojax_morph.confirm import t_interval
 from evojax_morph import plots
-from evojax_morph.pipeline import NO_OP, build, make_greedy_rollout
+from evojax_morph.confirm import t_interval
+from evojax_morph.pipeline import build, make_greedy_rollout
 from experiments.build_tables import revision
 from experiments.common import Setup, band, episode_returns, plt, run_agent, run_config, save
+from experiments.fig7_video import unroll_bodies
 
 TRAIN_STEPS = 5_000  # the source's PPO budget per evaluation (it names 3,000 and 5,000)
 
@@ -225,19 +226,6 @@ def compare_effects(runs: dict[str, dict]) -> dict:
                 "df": float(test.df), "p": float(test.pvalue)}
     return {"agents": agents, "differences": differences,
             "interval": "agents: 95% t over seeds; differences: 95% Welch t over seeds"}
-
-
-def unroll_bodies(space, unroll: dict) -> list:
-    """The bodies of a greedy unroll from its data: m0, then each named action applied in turn
-    ("node 1: to_back_end", `pipeline.action_name`), each checked against the body it names."""
-    bodies = [space.initial()]
-    for action in unroll["actions"]:
-        node, mutation = action.removesuffix(NO_OP).removeprefix("node ").split(": ")
-        bodies.append(space.mutate(bodies[-1], int(node), space.mutation_names.index(mutation)))
-    names = [space.canonical(m) for m in bodies]
-    if names != [b["body"] for b in unroll["bodies"]]:
-        raise ValueError(f"the unroll's actions do not give its bodies: {names}")
-    return bodies
 
 
 def draw_unrolls(r: dict, title: str):
