@@ -82,7 +82,8 @@ def gpu_controllers(physics: str, space: str = "bad_walker") -> int:
     return 8 if physics == "warp" else 4
 
 
-def add_distributed_flags(parser: argparse.ArgumentParser) -> None:
+def add_distributed_flags(parser) -> None:
+    """The flags of a run over several hosts, on `parser` (or an argument group)."""
     add = parser.add_argument
     add(
         "--distributed",
@@ -90,23 +91,12 @@ def add_distributed_flags(parser: argparse.ArgumentParser) -> None:
         help="call jax.distributed.initialize() first: one process per host, all with the same "
         "flags and --out; under SLURM nothing else is needed",
     )
-    add(
-        "--coordinator",
-        default=None,
-        help="with --distributed outside SLURM: host:port of process 0",
-    )
-    add(
-        "--num-processes",
-        type=int,
-        default=None,
-        help="with --distributed outside SLURM: number of processes",
-    )
-    add(
-        "--process-id",
-        type=int,
-        default=None,
-        help="with --distributed outside SLURM: this process's id",
-    )
+    add("--coordinator", default=None,
+        help="with --distributed outside SLURM: host:port of process 0")
+    add("--num-processes", type=int, default=None,
+        help="with --distributed outside SLURM: number of processes")
+    add("--process-id", type=int, default=None,
+        help="with --distributed outside SLURM: this process's id")
 
 
 def start_deterministic(argv) -> None:
@@ -157,19 +147,108 @@ def start_distributed(argv) -> None:
         init_distributed(known.coordinator, known.num_processes, known.process_id)
 
 
-def parse(argv) -> tuple[RunConfig, Path, bool]:
-    parser = argparse.ArgumentParser(
-        prog="python -m evojax_morph.run",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
+    """The run's config, directory, --resume and whether to draw best.gif; exits 2 with the
+    reason (`parser.error`) on a bad flag."""
     gpu = jax.default_backend() == "gpu"
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--space", default=RunConfig().space)
     space = pre.parse_known_args(argv)[0].space
     defaults = dataclasses.replace(RunConfig(), **gpu_defaults(space)) if gpu else RunConfig()
-    add = parser.add_argument
+    parser = make_parser(defaults)
+    args = parser.parse_args(argv)
+    check(parser, args)
+    if not args.resume:
+        args.physics = physics(parser, args.physics, args.fitness)
+    if args.controllers is None:
+        args.controllers = gpu_controllers(args.physics, args.space) if gpu else \
+            defaults.controllers
+    cfg = RunConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(RunConfig)})
+    classifier = str(Path(args.classifier).resolve()) if args.classifier else ""
+    table = str(Path(args.table).resolve()) if args.table else ""
+    cfg = dataclasses.replace(cfg, classifier=classifier, table=table)
+    out = Path(args.out) if args.out else driver.fresh_run_dir(cfg)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".write_test{jax.process_index()}"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as e:
+        parser.error(f"cannot write to --out {str(out)!r}: {e.strerror or e}")
+    saved = out / "config.json"
+    if args.resume:
+        if not saved.exists():
+            parser.error(f"--resume: no run in {str(out)!r} (no config.json)")
+        # a run begun before tasks were named trained under the source's task
+        config = {"task": "distance", **json.loads(saved.read_text())}
+        cfg = dataclasses.replace(RunConfig(**config), steps=args.steps)
+        cfg = dataclasses.replace(cfg, physics=physics(parser, cfg.physics, cfg.fitness))
+    elif (out / "checkpoints").exists():
+        parser.error(
+            f"{str(out)!r} already holds a run: pass --resume to continue it, or another --out"
+        )
+    return cfg, out, args.resume, not args.no_gif
+
+
+def make_parser(defaults: RunConfig) -> argparse.ArgumentParser:
+    """The run's flags in groups, their defaults `defaults`' (a RunConfig, GPU defaults
+    applied)."""
+    parser = argparse.ArgumentParser(
+        prog="python -m evojax_morph.run",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_run_flags(parser.add_argument_group("run"), defaults)
+    add_fitness_flags(parser.add_argument_group("fitness"), defaults)
+    add_agent_flags(parser.add_argument_group("agent"), defaults)
+    add_confirm_flags(parser.add_argument_group("confirm"), defaults)
+    output = parser.add_argument_group("output and devices")
+    output.add_argument(
+        "--no-gif",
+        action="store_true",
+        help="skip best.gif at the end (its replay compiles and draws for up to a minute on a "
+        "CPU); the controllers are saved either way, for `python -m evojax_morph.render`",
+    )
+    output.add_argument(
+        "--fast-gpu",
+        action="store_true",
+        help="leave XLA's deterministic GPU ops off: about 1.4x faster on the JAX engine, but "
+        "the same seed no longer gives the same run on a GPU (CPU runs are deterministic "
+        "either way). A PPO fitness on MuJoCo Warp leaves them off anyway: Warp's own contact "
+        "order is not reproducible",
+    )
+    add_distributed_flags(output)
+    return parser
+
+
+def add_run_flags(group, defaults: RunConfig) -> None:
+    """The space, seed, run directory and the size of the run."""
+    add = group.add_argument
     add("--space", default=defaults.space, help=f"morphology space: {', '.join(list_spaces())}")
+    add("--steps", type=int, default=defaults.steps,
+        help="environment steps; each mutates every parallel evolution once")
+    add("--seed", type=int, default=defaults.seed, help="seed of every random choice of the run")
+    add("--out", default=None, help="run directory (default: a new runs/SPACE-FITNESS-seedS[-N])")
+    add("--resume", action="store_true",
+        help="continue the run in --out from its last checkpoint, up to --steps")
+    add("--num-envs", type=int, default=defaults.num_envs,
+        help="parallel evolutions: the fitness batch of a step")
+    add(
+        "--horizon",
+        type=int,
+        default=defaults.horizon,
+        help="mutations per episode (0: the space's default_horizon: 5 for bad_walker, the "
+        "capacity for constructor)",
+    )
+    add("--chunk", type=int, default=defaults.chunk,
+        help="environment steps per jitted call (progress and checkpoint granularity)")
+    add("--checkpoint-every", type=int, default=defaults.checkpoint_every,
+        help="chunks between checkpoints")
+
+
+def add_fitness_flags(group, defaults: RunConfig) -> None:
+    """The fitness, its task and inputs, and what a PPO evaluation trains on."""
+    add = group.add_argument
     add(
         "--task",
         default=None,
@@ -194,52 +273,10 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         help="table: the landscape table (.npz) built by `python -m experiments.build_tables` "
         "(default: the space's packaged one, evojax_morph/tables/SPACE.npz)",
     )
-    add(
-        "--classifier",
-        default="",
-        help="tame: directory of a classifier trained by `python -m evojax_morph.tame`",
-    )
-    add(
-        "--agent",
-        default=defaults.agent,
-        choices=agents.list_agents(),
-        help="who chooses the mutations: ddqn (Double-DQN), dqn (plain DQN), qrdqn "
-        "(quantile-regression DQN), a2c (actor-critic), or the baselines "
-        "random (random mutation walks) and evolution (a population, random mutations, the "
-        "fittest survive)",
-    )
-    add(
-        "--steps",
-        type=int,
-        default=defaults.steps,
-        help="environment steps; each mutates every parallel evolution once",
-    )
-    add("--seed", type=int, default=defaults.seed, help="seed of every random choice of the run")
-    add("--out", default=None, help="run directory (default: a new runs/SPACE-FITNESS-seedS[-N])")
-    add(
-        "--resume",
-        action="store_true",
-        help="continue the run in --out from its last checkpoint, up to --steps",
-    )
-    add(
-        "--num-envs",
-        type=int,
-        default=defaults.num_envs,
-        help="parallel evolutions: the fitness batch of a step",
-    )
-    add(
-        "--horizon",
-        type=int,
-        default=defaults.horizon,
-        help="mutations per episode (0: the space's default_horizon: 5 for bad_walker, the "
-        "capacity for constructor)",
-    )
-    add(
-        "--train-steps",
-        type=int,
-        default=defaults.train_steps,
-        help="PPO control steps per fitness evaluation",
-    )
+    add("--classifier", default="",
+        help="tame: directory of a classifier trained by `python -m evojax_morph.tame`")
+    add("--train-steps", type=int, default=defaults.train_steps,
+        help="PPO control steps per fitness evaluation")
     add(
         "--controllers",
         type=int,
@@ -255,45 +292,30 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         "Warp, `pip install 'evojax_morph[warp]'`), or auto: warp where it runs on a GPU, else "
         "jax (the run says which it took)",
     )
+
+
+def add_agent_flags(group, defaults: RunConfig) -> None:
+    """Who chooses the mutations, and how it learns."""
+    add = group.add_argument
     add(
-        "--fast-gpu",
-        action="store_true",
-        help="leave XLA's deterministic GPU ops off: about 1.4x faster on the JAX engine, but "
-        "the same seed no longer gives the same run on a GPU (CPU runs are deterministic "
-        "either way). A PPO fitness on MuJoCo Warp leaves them off anyway: Warp's own contact "
-        "order is not reproducible",
+        "--agent",
+        default=defaults.agent,
+        choices=agents.list_agents(),
+        help="who chooses the mutations: ddqn (Double-DQN), dqn (plain DQN), qrdqn "
+        "(quantile-regression DQN), a2c (actor-critic), or the baselines "
+        "random (random mutation walks) and evolution (a population, random mutations, the "
+        "fittest survive)",
     )
     add("--hidden", type=int, default=defaults.hidden, help="width of the agent's GNN")
-    add(
-        "--explore-steps",
-        type=int,
-        default=defaults.explore_steps,
-        help="ddqn, dqn, qrdqn: environment steps of epsilon annealing",
-    )
-    add(
-        "--learning-starts",
-        type=int,
-        default=defaults.learning_starts,
-        help="ddqn, dqn, qrdqn: transitions stored before learning",
-    )
-    add(
-        "--chunk",
-        type=int,
-        default=defaults.chunk,
-        help="environment steps per jitted call (progress and checkpoint granularity)",
-    )
-    add(
-        "--checkpoint-every",
-        type=int,
-        default=defaults.checkpoint_every,
-        help="chunks between checkpoints",
-    )
-    add(
-        "--no-gif",
-        action="store_true",
-        help="skip best.gif at the end (its replay compiles and draws for up to a minute on a "
-        "CPU); the controllers are saved either way, for `python -m evojax_morph.render`",
-    )
+    add("--explore-steps", type=int, default=defaults.explore_steps,
+        help="ddqn, dqn, qrdqn: environment steps of epsilon annealing")
+    add("--learning-starts", type=int, default=defaults.learning_starts,
+        help="ddqn, dqn, qrdqn: transitions stored before learning")
+
+
+def add_confirm_flags(group, defaults: RunConfig) -> None:
+    """The confirm stage at the end of a run."""
+    add = group.add_argument
     add(
         "--confirm",
         type=int,
@@ -314,28 +336,25 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
         "table: one draw), at least 2: the 95%% interval of its mean is a Student-t interval "
         "over them (default: 32 on a GPU, 4 on a CPU)",
     )
-    add_distributed_flags(parser)
-    args = parser.parse_args(argv)
+
+
+POSITIVE = ("steps", "num_envs", "train_steps", "controllers", "hidden", "chunk",
+            "checkpoint_every", "explore_steps")  # flags checked positive (train_steps: >= 0)
+
+
+def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Exits 2 with the reason (`parser.error`) where the flags cannot make a run; sets
+    args.task where it was left to its default (a table's own, else walk)."""
     if jax.process_count() > 1 and not args.out:
         parser.error(
             "with several processes pass --out: every process must write the same run directory"
         )
-
     if args.space not in list_spaces():
         parser.error(f"unknown space {args.space!r}; known spaces: {', '.join(list_spaces())}")
     if args.task is not None and args.task not in list_tasks():
         parser.error(f"unknown task {args.task!r}; known tasks: {', '.join(list_tasks())}")
-    for name in (
-        "steps",
-        "num_envs",
-        "train_steps",
-        "controllers",
-        "hidden",
-        "chunk",
-        "checkpoint_every",
-        "explore_steps",
-    ):
-        value = getattr(args, name)  # None: the default, set below
+    for name in POSITIVE:
+        value = getattr(args, name)  # None: the default, set by `parse`
         if value is not None and value < (0 if name == "train_steps" else 1):
             parser.error(f"--{name.replace('_', '-')} must be positive, got {value}")
     if args.horizon < 0:
@@ -374,54 +393,24 @@ def parse(argv) -> tuple[RunConfig, Path, bool]:
     if args.task is None:
         args.task = "walk"
 
-    def physics(name: str, fitness: str) -> str:
-        """The engine `name` resolves to ("auto"), checked: exit 2 with the reason if it cannot
-        run here."""
-        if fitness == "tame" and name not in (AUTO, "jax"):
-            parser.error("--physics: the tame fitness runs on the JAX engine only")
-        try:
-            name, why = resolve("jax" if fitness == "tame" else name)
-        except (RuntimeError, ValueError) as e:
-            parser.error(f"--physics: {e}")
-        if fitness == "ppo":
-            print(f"physics: {name} ({why})", flush=True)
-        if fitness == "ppo" and name == "warp":
-            print("physics: on a GPU MuJoCo Warp orders contacts by thread timing, so this run "
-                  "is not reproducible from its seed, and XLA's deterministic ops are left off "
-                  "(they would only cost time); --physics jax is reproducible "
-                  "(docs/benchmarks.md)", flush=True)
-        return name
 
-    if not args.resume:
-        args.physics = physics(args.physics, args.fitness)
-    if args.controllers is None:
-        args.controllers = gpu_controllers(args.physics, args.space) if gpu else \
-            defaults.controllers
-    cfg = RunConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(RunConfig)})
-    classifier = str(Path(args.classifier).resolve()) if args.classifier else ""
-    table = str(Path(args.table).resolve()) if args.table else ""
-    cfg = dataclasses.replace(cfg, classifier=classifier, table=table)
-    out = Path(args.out) if args.out else driver.fresh_run_dir(cfg)
+def physics(parser: argparse.ArgumentParser, name: str, fitness: str) -> str:
+    """The engine `name` resolves to ("auto"), checked: exit 2 with the reason if it cannot
+    run here."""
+    if fitness == "tame" and name not in (AUTO, "jax"):
+        parser.error("--physics: the tame fitness runs on the JAX engine only")
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / f".write_test{jax.process_index()}"
-        probe.write_text("")
-        probe.unlink()
-    except OSError as e:
-        parser.error(f"cannot write to --out {str(out)!r}: {e.strerror or e}")
-    saved = out / "config.json"
-    if args.resume:
-        if not saved.exists():
-            parser.error(f"--resume: no run in {str(out)!r} (no config.json)")
-        # a run begun before tasks were named trained under the source's task
-        config = {"task": "distance", **json.loads(saved.read_text())}
-        cfg = dataclasses.replace(RunConfig(**config), steps=args.steps)
-        cfg = dataclasses.replace(cfg, physics=physics(cfg.physics, cfg.fitness))
-    elif (out / "checkpoints").exists():
-        parser.error(
-            f"{str(out)!r} already holds a run: pass --resume to continue it, or another --out"
-        )
-    return cfg, out, args.resume, not args.no_gif
+        name, why = resolve("jax" if fitness == "tame" else name)
+    except (RuntimeError, ValueError) as e:
+        parser.error(f"--physics: {e}")
+    if fitness == "ppo":
+        print(f"physics: {name} ({why})", flush=True)
+    if fitness == "ppo" and name == "warp":
+        print("physics: on a GPU MuJoCo Warp orders contacts by thread timing, so this run "
+              "is not reproducible from its seed, and XLA's deterministic ops are left off "
+              "(they would only cost time); --physics jax is reproducible "
+              "(docs/benchmarks.md)", flush=True)
+    return name
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,168 @@
+"""The end of a run: its report, printed and written (summary.json, the plots, best.gif), and
+the entries of confirmed.json and timing.json it is built from (`driver`)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from evojax_morph import bodylog, plots, video
+from evojax_morph.confirm import Confirmed
+from evojax_morph.pipeline import Greedy
+
+
+def timing(total: float, chunks: list[tuple[int, float]]) -> dict:
+    """timing.json: this call's wall clock (a resumed run's since it resumed), split into its
+    steps and the rest (building, compiling, m0, the confirm stage, the end phase), from
+    `driver.execute`'s start (imports excluded); it adds the seconds of its phases (building and
+    m0's evaluation, the steps, the greedy rollout, the confirm stage, saving the controllers,
+    the plots and summary, best.gif) and `first_chunk_dispatch`, how long the first chunk call
+    takes to return: its host side (compiling or loading, unless the warmup did) where JAX
+    dispatches asynchronously, but with MuJoCo Warp on a GPU also most of the step's work, since
+    XLA runs Warp's callbacks on the calling thread (docs/benchmarks.md). A step is timed by the
+    chunks after the first (whose call may compile); None with one chunk or none."""
+    steps = sum(n for n, _ in chunks)
+    step = float(np.median([s / n for n, s in chunks[1:]])) if chunks[1:] else None
+    return {"seconds": round(total, 1), "steps": steps, "step_seconds": step and round(step, 3),
+            "outside_steps_seconds": step and round(total - step * steps, 1)}
+
+
+def confirmed_entry(found: Confirmed, logged: dict) -> dict:
+    """summary.json's entry of a confirmed body, with its mean and count in the body log."""
+    return {
+        "body": found.body,
+        "mean": found.mean,
+        "ci95": list(found.ci95),
+        "controllers": len(found.values),
+        "values": [float(v) for v in found.values],
+        "diverged": int(found.diverged.sum()),
+        "log_mean": logged["mean_fitness"],
+        "log_evaluations": logged["evaluations"],
+        **gait_entry(found),
+    }
+
+
+def gait_entry(found: Confirmed) -> dict:
+    """A confirmed body's gait over its fresh evaluations: mean distance (m) and upright (the
+    fraction of an episode before a fall), the fraction of evaluations upright the whole
+    episode, and each evaluation's; None where the fitness measures no gait."""
+    if not np.isfinite(found.distance).all():
+        return {"distance": None, "upright": None, "upright_whole": None}
+    return {
+        "distance": float(found.distance.mean()),
+        "upright": float(found.upright.mean()),
+        "upright_whole": found.upright_whole,
+        "distances": [round(float(d), 4) for d in found.distance],
+        "uprights": [round(float(u), 4) for u in found.upright],
+    }
+
+
+def walks(entry: dict, seconds: float) -> str:
+    """'walks 3.1 m in 5 s, upright 100%' of a confirmed entry ('' without a gait)."""
+    if entry.get("distance") is None:
+        return ""
+    return (f"walks {entry['distance']:.2f} m in {seconds:g} s, upright "
+            f"{entry['upright']:.0%} (the whole episode in {entry['upright_whole']:.0%} of "
+            "its evaluations)")
+
+
+def write_results(
+    out: Path, space, rows: list[dict], best, best_fitness: float, greedy: Greedy | None,
+    steps: int, saved: list[str], gif: bool, record: dict, phase=lambda name: None,
+    episode_seconds: float = 5.0,
+) -> None:
+    """curve.png, best.xml, trajectory.png (if `greedy`), confirmed.png (if the confirm stage's
+    `record` confirmed bodies), summary.json and best.gif (if controllers were `saved` and
+    `gif`), and a printed digest with the best bodies of the body log and the confirmed ones
+    (with their gait: metres in an episode of `episode_seconds`, and upright);
+    `phase("results")` is called before best.gif is drawn, `phase("best_gif")` after."""
+    col = lambda name: np.array([r[name] for r in rows], float)  # noqa: E731  (resumed: strings)
+    plots.plot_curve(
+        out / "curve.png", col("step"), col("reward_median"), col("reward_q25"), col("reward_q75")
+    )
+    (out / "best.xml").write_text(space.to_mjcf(best))
+    confirmed = record["confirmed"]
+    draw = bodylog.best_draw(out / "bodies.sqlite")
+    summary = {
+        "best_fitness": best_fitness,  # the confirmed mean; else (not confirmed) the best draw
+        "best_morphology": best.to_dict(),
+        "best_body": space.canonical(best),
+        "best_single_draw": draw,
+        "confirmed": confirmed,
+        "confirm_note": record["confirm_note"],
+        "env_steps": steps,
+        "greedy_trajectory": None,
+        "best_bodies": bodylog.best_bodies(out / "bodies.sqlite", 10),
+        "controllers": saved,
+    }
+    written = "curve.png best.xml summary.json metrics.csv bodies.sqlite tb/ checkpoints/"
+    print_best_bodies(summary["best_bodies"])
+    if confirmed:
+        print_confirmed(confirmed, record["confirm_note"])
+        plots.plot_confirmed(out / "confirmed.png", confirmed)
+        written = "confirmed.json confirmed.png " + written
+        top = confirmed[0]
+        what = (f"confirmed mean {top['mean']:.4g}, 95% CI [{top['ci95'][0]:.4g}, "
+                f"{top['ci95'][1]:.4g}] over {top['controllers']} fresh controllers")
+        gait = walks(top, episode_seconds)
+        if gait:
+            print(f"\nconfirmed best {gait}")
+    else:
+        print(f"\nconfirm: {record['confirm_note']}")
+        what = f"fitness {best_fitness:.4g}, its highest single draw"
+    print(f"\nhighest single draw: {draw['fitness']:.4g} by {draw['body']} at step "
+          f"{draw['step']}")
+    print(f"\nbest morphology ({what}):")
+    print(space.format(best))
+    if greedy is not None:
+        morphs, fitness, actions, _ = greedy
+        plots.plot_trajectory(out / "trajectory.png", space, morphs, fitness, actions)
+        summary["greedy_trajectory"] = [
+            {"action": a, "fitness": f, "morphology": m.to_dict()}
+            for a, f, m in zip(["m0"] + actions, fitness, morphs)
+        ]
+        print("\ngreedy trajectory from m0:")
+        for a, f in zip(["m0"] + actions, fitness):
+            print(f"  {a:<32} fitness {f:.4g}")
+        print(f"\nfinal greedy morphology:\n{space.format(morphs[-1])}")
+        written = "trajectory.png " + written
+    if saved:
+        written += " controllers/"
+    phase("results")
+    if saved and gif:
+        shown = video.render(out, "best", mp4=False)
+        for note in shown.notes:
+            print(f"best.gif: {note}")
+        walked = shown.replay.distance[-1]
+        written += f" best.gif (drawn by {shown.backend}; the best body walks {walked:.2f} m)"
+    elif not saved:
+        print("\nno controllers to keep: the fitness trains none (only ppo does), so no best.gif")
+    phase("best_gif")
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    print(f"\nwrote {out}/: {written}")
+
+
+def print_best_bodies(best: list[dict]) -> None:
+    print(f"\nthe {len(best)} distinct bodies of the highest mean fitness in the run "
+          "(bodies.sqlite):")
+    print(f"  {'mean f':>9} {'evals':>5} {'best f':>9} {'first':>5} {'metres':>6} "
+          f"{'upright':>7}  body")
+    gait = lambda x, f: "-" if x is None else format(x, f)  # noqa: E731
+    for b in best:
+        print(f"  {b['mean_fitness']:9.4g} {b['evaluations']:5d} {b['best_fitness']:9.4g} "
+              f"{b['first_step']:5d} {gait(b.get('mean_distance'), '.2f'):>6} "
+              f"{gait(b.get('mean_upright'), '.0%'):>7}  {b['body']}")
+
+
+def print_confirmed(confirmed: list[dict], note: str) -> None:
+    print(f"\nconfirmed: {note}:")
+    print(f"  {'mean':>9} {'95% CI':>21} {'log mean':>9} {'evals':>5} {'metres':>6} "
+          f"{'upright':>7} {'whole':>5}  body")
+    gait = lambda x, f: "-" if x is None else format(x, f)  # noqa: E731
+    for c in confirmed:
+        ci = f"[{c['ci95'][0]:.4g}, {c['ci95'][1]:.4g}]"
+        print(f"  {c['mean']:9.4g} {ci:>21} {c['log_mean']:9.4g} {c['log_evaluations']:5d} "
+              f"{gait(c.get('distance'), '.2f'):>6} {gait(c.get('upright'), '.0%'):>7} "
+              f"{gait(c.get('upright_whole'), '.0%'):>5}  {c['body']}")
