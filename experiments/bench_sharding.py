@@ -71,8 +71,8 @@ def agreement(space, devices, bodies: int, seeds: int, physics: str) -> dict:
     its key across batches, fitness.evaluate: compare the distributions)."""
     keys = jax.random.split(jax.random.PRNGKey(7), bodies)
     morphs = jax.jit(jax.vmap(space.random_morphology, (0, None)), static_argnums=1)(keys, 3)
-    tile = lambda x: jax.numpy.repeat(x, seeds, 0)  # noqa: E731  body i at rows i*seeds...
-    morphs, keys = jax.tree.map(tile, morphs), jax.random.split(jax.random.PRNGKey(8), bodies * seeds)
+    morphs = jax.tree.map(lambda x: jax.numpy.repeat(x, seeds, 0), morphs)  # body i: rows i*S..
+    keys = jax.random.split(jax.random.PRNGKey(8), bodies * seeds)
     cfg = dataclasses.replace(STANDARD, physics=physics)
     f = {n: np.asarray(em.evaluate(space, morphs, keys, cfg, mesh=batch_mesh(devices[:n])).fitness)
          .reshape(bodies, seeds) for n in sorted({1, len(devices)})}
@@ -82,7 +82,8 @@ def agreement(space, devices, bodies: int, seeds: int, physics: str) -> dict:
             "devices": len(devices), "bodies": bodies, "seeds": seeds,
             "mean_1": float(one.mean()), "mean_n": float(many.mean()),
             "difference": float(diff.mean()), "difference_ci95": t_interval(diff),
-            "spearman_body_means": float(scipy.stats.spearmanr(one.mean(1), many.mean(1)).statistic),
+            "spearman_body_means": float(
+                scipy.stats.spearmanr(one.mean(1), many.mean(1)).statistic),
             "date": datetime.date.today().isoformat(), "revision": revision()}
 
 
