@@ -1,5 +1,5 @@
-"""The inner PPO's networks: a controller's parameters, the masked log-probability and entropy,
-the clipped loss.
+"""The inner PPO's settings and networks: `PPOConfig`, a controller's parameters, the masked
+log-probability and entropy, the clipped loss.
 
 brax's PPO networks (`make_networks`) act on the padded template's whole action vector; the
 log-probability and entropy here sum over the motors a body has only (brax's sum over every
@@ -8,7 +8,8 @@ action dimension). `evojax_morph.ppo` trains them and re-exports these names.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -18,8 +19,45 @@ from brax.training.agents.ppo import networks as brax_networks
 
 from evojax_morph.locomotion import Locomotion
 
-if TYPE_CHECKING:
-    from evojax_morph.ppo import PPOConfig
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+    """Inner PPO settings; budgets are per morphology."""
+
+    train_steps: int = 100_000  # control steps of training, over all envs
+    num_envs: int = 32  # parallel worlds per morphology
+    unroll_length: int = 20  # control steps per env between updates
+    num_minibatches: int = 4
+    update_epochs: int = 8
+    learning_rate: float = 1e-3
+    discount: float = 0.97
+    gae_lambda: float = 0.95
+    clip_eps: float = 0.3
+    entropy_cost: float = 1e-2
+    vf_coef: float = 0.5
+    max_grad_norm: float = 1.0
+    reward_scaling: float = 1.0
+    normalize_observations: bool = True
+    policy_hidden: tuple[int, ...] = (32, 32)
+    value_hidden: tuple[int, ...] = (64, 64)
+    eval_episodes: int = 4  # deterministic episodes of episode_length after training
+    controllers: int = 1  # K independent controllers per body; the fitness is their mean
+
+    @property
+    def num_updates(self) -> int:
+        return max(1, self.train_steps // (self.num_envs * self.unroll_length))
+
+    def validate(self) -> None:
+        batch = self.num_envs * self.unroll_length
+        if self.train_steps < 0 or self.num_envs < 1 or self.unroll_length < 1:
+            raise ValueError("train_steps must be >= 0, num_envs and unroll_length >= 1")
+        if batch % self.num_minibatches:
+            raise ValueError(
+                f"num_envs x unroll_length ({batch}) must divide into "
+                f"{self.num_minibatches} minibatches"
+            )
+        if self.eval_episodes < 1 or self.controllers < 1:
+            raise ValueError("eval_episodes and controllers must be at least 1")
 
 
 class Params(NamedTuple):
