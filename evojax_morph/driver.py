@@ -27,13 +27,7 @@ import jax
 import numpy as np
 
 from evojax_morph import bodylog, controllers, video
-from evojax_morph.checkpoints import (  # noqa: F401  (tests and run use them as driver's)
-    DAMAGED,
-    ResumeError,
-    _drop_closed_loop_reports,
-    checkpoint_manager,
-    restore_newest,
-)
+from evojax_morph.checkpoints import checkpoint_manager, restore_newest
 from evojax_morph.confirm import Confirmed, confirm, lower_confirm
 from evojax_morph.fitnesses import get_fitness
 from evojax_morph.morphology import Morphology

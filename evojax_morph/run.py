@@ -24,7 +24,7 @@ from pathlib import Path
 
 import jax
 
-from evojax_morph import agents, driver
+from evojax_morph import agents, checkpoints, driver
 from evojax_morph.determinism import deterministic_gpu, persistent_cache
 from evojax_morph.engines import AUTO, list_engines, resolve
 from evojax_morph.fitnesses import list_fitnesses
@@ -423,7 +423,7 @@ def main(argv: list[str] | None = None) -> int:
     persistent_cache()  # a second run of the same shapes skips XLA's compiles
     try:
         driver.execute(cfg, out, resume, gif)
-    except driver.ResumeError as e:  # bad input, as the parser's errors: code 2 and why
+    except checkpoints.ResumeError as e:  # bad input, as the parser's errors: code 2 and why
         print(f"python -m evojax_morph.run: error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
     return 0

@@ -18,6 +18,7 @@ import pytest
 
 import evojax_morph as em
 from evojax_morph import driver, engines, run, warmup
+from evojax_morph.checkpoints import DAMAGED, _drop_closed_loop_reports
 
 TINY = [
     "--space",
@@ -177,7 +178,7 @@ def test_resume_past_a_damaged_checkpoint(tmp_path, straight, capsys):
     printed = capsys.readouterr().out
     assert "checkpoint 6 does not read, skipped (ValueError: DATA_LOSS" in printed
     assert "resumed at step 3" in printed
-    assert _snapshot(split / driver.DAMAGED / "6") == damaged  # kept as it was, not deleted
+    assert _snapshot(split / DAMAGED / "6") == damaged  # kept as it was, not deleted
     assert sorted(int(d.name) for d in checkpoints.iterdir()) == [6, 9]  # saved afresh
     for name in ("metrics.csv", "summary.json"):
         assert (split / name).read_text() == (straight / name).read_text(), name
@@ -198,8 +199,8 @@ def test_a_failed_restore_drops_only_the_closed_loop_reports(monkeypatch):
         def __del__(self):
             raise self.e
 
-    driver._drop_closed_loop_reports()
-    driver._drop_closed_loop_reports()  # once is enough: not wrapped twice
+    _drop_closed_loop_reports()
+    _drop_closed_loop_reports()  # once is enough: not wrapped twice
     Raises(RuntimeError("Event loop is closed"))
     Raises(RuntimeError("something else"))
     Raises(ValueError("Event loop is closed"))
