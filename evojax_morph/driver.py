@@ -298,12 +298,12 @@ def _report(run: Run, evolved: Evolved, best: Best, clock: Clock) -> None:
     write_results(out, p.space, evolved.rows, best.morph, best.fitness, best.greedy, evolved.step,
                   best.saved, run.gif, best.record, clock.phase,
                   task.episode_length * task.frame_skip * p.space.template.opt.timestep)
-    clock_ = timing(time.perf_counter() - clock.started, evolved.chunk_seconds) | {
+    times = timing(time.perf_counter() - clock.started, evolved.chunk_seconds) | {
         "phases": clock.phases, "first_chunk_dispatch": evolved.dispatch}
-    (out / "timing.json").write_text(json.dumps(clock_, indent=1))
-    if clock_["step_seconds"]:
-        print(f"time: {clock_['seconds']:.0f} s, {clock_['step_seconds']:.3g} s a step, "
-              f"{clock_['outside_steps_seconds']:.0f} s outside the steps (timing.json; "
+    (out / "timing.json").write_text(json.dumps(times, indent=1))
+    if times["step_seconds"]:
+        print(f"time: {times['seconds']:.0f} s, {times['step_seconds']:.3g} s a step, "
+              f"{times['outside_steps_seconds']:.0f} s outside the steps (timing.json; "
               "imports not counted)")
 
 

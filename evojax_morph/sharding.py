@@ -67,7 +67,8 @@ def shard_batch(fn: Callable, mesh: Mesh | None = None, manual: bool = False) ->
       manual: split with `jax.shard_map` (each device runs `fn` on its own B / n elements) rather
         than by XLA's partitioner: for a `fn` that calls a foreign function (MuJoCo Warp's FFI
         call), which the partitioner cannot split and runs whole on every device. Only where
-        `MANUAL_SPLIT` (jax < 0.11); elsewhere a warning, and the partitioner's split.
+        `MANUAL_SPLIT` (jax < 0.11); elsewhere a warning, and the constraints as without it
+        (Warp then runs whole on every device).
     Returns:
       A function of the same signature, for use inside `jax.jit`. B need not divide the device
       count: the batch is padded with copies of its first element, whose results are dropped.
@@ -89,7 +90,8 @@ def shard_batch(fn: Callable, mesh: Mesh | None = None, manual: bool = False) ->
     )
     if manual and not MANUAL_SPLIT:
         _warn_no_manual_split()
-    if manual and MANUAL_SPLIT:  # each argument and output split on its leading axis
+        manual = False
+    if manual:  # each argument and output split on its leading axis
         body = jax.shard_map(fn, mesh=mesh, in_specs=PartitionSpec(AXIS),
                              out_specs=PartitionSpec(AXIS), check_vma=False)
     else:
