@@ -107,9 +107,16 @@ class Locomotion:
       simulation diverged (state not finite or a velocity beyond `max_speed`), which also
       zeroes that step's reward and observation.
     Truncation: after `episode_length` control steps.
+
+    `limbs`, `full`: for a size class (`Space.size_classes`), the full template's limb slot of
+    each of `space`'s limb slots, and the task on the full template: observations, actions and
+    reset noise then keep the full template's layout (a slot this template lacks reads 0 and
+    acts on nothing), so a controller means the same whichever template its body runs on, and
+    a key resets a body alike on both.
     """
 
-    def __init__(self, space: Space, cfg: TaskConfig = TaskConfig()):
+    def __init__(self, space: Space, cfg: TaskConfig = TaskConfig(),
+                 limbs: np.ndarray | None = None, full: Locomotion | None = None):
         self.space, self.cfg = space, cfg
         t = space.template
         joint = lambda name: t.joint(name).id
@@ -119,13 +126,20 @@ class Locomotion:
         self._limb_dof = np.array([t.jnt_dofadr[joint(n)] for n in space.plan.joint_names], int)
         self._actuator = np.array([t.actuator(n).id for n in space.plan.actuator_names], int)
         self._root_body = t.body("node0").id
-        self.action_size = len(self._actuator)
+        if t.nv != len(self._root_dof) + len(self._limb_dof):
+            raise ValueError(f"{space.name}: every dof must be the root's or a limb joint's")
+        own = len(self._actuator)
+        self._limbs = np.arange(own) if limbs is None else np.asarray(limbs)  # into the layout
+        self._layout = self if full is None else full  # the full template's
+        self.action_size = own if full is None else full.action_size
+        self.nv = t.nv
         self.obs_size = 6 + 2 * self.action_size
         self.dt = cfg.frame_skip * t.opt.timestep
 
     def action_mask(self, model: mjx.Model) -> jax.Array:
         """(action_size,) bool: the motors the morphology of `model` has."""
-        return model.actuator_gear[self._actuator, 0] != 0
+        own = model.actuator_gear[self._actuator, 0] != 0
+        return jnp.zeros(self.action_size, bool).at[self._limbs].set(own)
 
     def body(self, model: mjx.Model) -> Body:
         """What the task reads of one specialised body (vmap it for a batch)."""
@@ -171,13 +185,18 @@ class Locomotion:
 
     # THE TASK, per world, on positions and velocities
     def _perturb(self, key: jax.Array, body: Body, qpos: jax.Array, qvel: jax.Array):
+        # Drawn over the full template's dofs and read at this template's: a body resets alike
+        # on the full template and on its size class.
         key_q, key_v = jax.random.split(key)
         mask = body.motors.astype(qpos.dtype)
+        full = self._layout
         noise_q = jax.random.uniform(key_q, (self.action_size,), minval=-1, maxval=1) * mask
-        dof_on = jnp.ones(qvel.shape[-1]).at[self._limb_dof].set(mask)
-        noise_v = jax.random.uniform(key_v, qvel.shape, minval=-1, maxval=1) * dof_on
+        noise_v = jax.random.uniform(key_v, (full.nv,), minval=-1, maxval=1)
+        root_v = noise_v[full._root_dof]
+        limb_v = (noise_v[full._limb_dof] * mask)[self._limbs]
         noise = self.cfg.reset_noise
-        return qpos.at[self._limb_qpos].add(noise * noise_q), qvel + noise * noise_v
+        qvel = qvel.at[self._root_dof].add(noise * root_v).at[self._limb_dof].add(noise * limb_v)
+        return qpos.at[self._limb_qpos].add(noise * noise_q[self._limbs]), qvel
 
     def _obs(self, body: Body, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
         _, z, pitch = qpos[self._root_qpos]
@@ -185,8 +204,8 @@ class Locomotion:
             [
                 jnp.stack([z + body.height, jnp.sin(pitch), jnp.cos(pitch)]),
                 qvel[self._root_dof],
-                qpos[self._limb_qpos] * body.motors,
-                qvel[self._limb_dof] * body.motors,
+                self._to_layout(qpos[self._limb_qpos]) * body.motors,
+                self._to_layout(qvel[self._limb_dof]) * body.motors,
             ]
         )
 
@@ -206,7 +225,11 @@ class Locomotion:
 
     def _controls(self, body: Body, ctrl: jax.Array, action: jax.Array):
         action = jnp.where(body.motors, jnp.clip(action, -1.0, 1.0), 0.0)
-        return action, ctrl.at[self._actuator].set(action)
+        return action, ctrl.at[self._actuator].set(action[self._limbs])
+
+    def _to_layout(self, x: jax.Array) -> jax.Array:
+        """(limbs of this template,) -> (action_size,): zeros in the slots it lacks."""
+        return jnp.zeros(self.action_size, x.dtype).at[self._limbs].set(x)
 
     def _outcome(self, body: Body, qpos_before, steps, action, qpos, qvel) -> EnvState:
         """The state after a control step, but its data (set by the caller)."""

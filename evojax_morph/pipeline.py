@@ -40,6 +40,7 @@ class RunConfig:
     train_steps: int = 10_000  # PPO control steps per fitness evaluation (per controller)
     controllers: int = 1  # independent PPO controllers per body (table: draws); their mean
     physics: str = "jax"  # the engine of the fitness's worlds: jax | warp (`engines`)
+    classes: bool = False  # ppo: each body on its size class's template (`classes`)
     hidden: int = 64  # GNN width
     explore_steps: int = 20  # (qr)dqn: environment steps over which epsilon anneals to 0.05
     learning_starts: int = 32  # (qr)dqn: transitions stored before the Q-network learns
@@ -80,7 +81,8 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     space = make_space(cfg.space)
     fit_cfg = FitnessConfig(kind=cfg.fitness, task=make_task(cfg.task or default_task(cfg)),
                             ppo=standard_ppo(cfg.train_steps, cfg.controllers),
-                            classifier=cfg.classifier, physics=cfg.physics, table=cfg.table)
+                            classifier=cfg.classifier, physics=cfg.physics, table=cfg.table,
+                            classes=cfg.classes)
     init_fn, fitness_fn = make_fitness_fn(space, fit_cfg, mesh)
     horizon = cfg.horizon or space.default_horizon
     env = EvolutionEnv(space, fitness_fn, init_fn, horizon=horizon, num_envs=cfg.num_envs)

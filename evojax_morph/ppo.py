@@ -75,8 +75,10 @@ class TrainResult:
 def make_policy(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig = PPOConfig()):
     """`policy(params, obs) -> action`: the deterministic actions (..., A) of one controller
     (no leading K axis) for (..., obs_size) observations, as the evaluation episodes act."""
-    networks = make_networks(Locomotion(space, task_cfg), cfg)
+    return _deterministic(make_networks(Locomotion(space, task_cfg), cfg))
 
+
+def _deterministic(networks):
     def policy(params: Params, obs: jax.Array) -> jax.Array:
         logits = networks.policy_network.apply(params.normalizer, params.policy, obs)
         return networks.parametric_action_distribution.mode(logits)
@@ -117,8 +119,11 @@ def make_train(
     task_cfg: TaskConfig = TaskConfig(),
     cfg: PPOConfig = PPOConfig(),
     physics: str = "jax",
+    layout: tuple | None = None,
 ):
-    """Returns `(init, train)` for the space's locomotion task on the engine `physics`.
+    """Returns `(init, train)` for the space's locomotion task on the engine `physics`; with
+    `layout` (limbs, full space) on a size class's template in the full one's layout
+    (`Locomotion`).
 
     init(key) -> Params: one body's controllers (K stacked along a leading axis if K > 1).
     train(keys (B,), morphs (B, ...), params (B, ...)) -> TrainResult of (B,) arrays: each body
@@ -127,7 +132,8 @@ def make_train(
       deterministic episodes each, B x K x eval_episodes worlds).
     """
     cfg.validate()
-    env = Locomotion(space, task_cfg)
+    env = Locomotion(space, task_cfg) if layout is None else Locomotion(
+        space, task_cfg, layout[0], Locomotion(layout[1], task_cfg))
     networks = make_networks(env, cfg)
     train_learners = make_train_learners(space, env, get_engine(physics), networks, cfg)
 
@@ -358,7 +364,7 @@ def make_evaluate_learners(space: Space, env: Locomotion, engine: Engine, cfg: P
     """`evaluate(keys (L,), models (B,), params (L, ...)) -> Episodes` of (L, eval_episodes)
     arrays: L learners' deterministic policies, the episodes of learner l reset with
     `split(keys[l], eval_episodes)`, as `make_evaluate` scores one controller."""
-    policy = jax.vmap(make_policy(space, env.cfg, cfg))
+    policy = jax.vmap(_deterministic(make_networks(env, cfg)))
     episodes = cfg.eval_episodes
 
     def evaluate(keys: jax.Array, models, params: Params) -> Episodes:

@@ -292,6 +292,9 @@ def add_fitness_flags(group, defaults: RunConfig) -> None:
         "Warp, `pip install 'evojax_morph[warp]'`), or auto: warp where it runs on a GPU, else "
         "jax (the run says which it took)",
     )
+    add("--size-classes", dest="classes", action="store_true",
+        help="ppo: train each body on the smallest of the space's size-class templates that "
+        "holds it, not the one padded template (the Constructor's; evojax_morph.classes)")
 
 
 def add_agent_flags(group, defaults: RunConfig) -> None:

@@ -27,6 +27,8 @@ them off: they buy no reproducibility there); --warp-deterministic MuJoCo Warp's
 
   python -m experiments.bench_fitness --batches 1 16                 # CPU
   python -m experiments.bench_fitness --batches 1 256 1024 4096 --physics warp
+  python -m experiments.bench_fitness --space constructor --batches 256 --physics warp \
+      --single 0 --mutations 8 --classes   # one template against size classes
   python -m experiments.bench_fitness --batches 1024 --physics warp --single 0 \
       --trace /tmp/trace   # where the device's time goes
 """
@@ -38,6 +40,7 @@ import collections
 import contextlib
 import dataclasses
 import glob
+import itertools
 import json
 import time
 
@@ -227,6 +230,9 @@ def main():
     parser.add_argument("--trace", default=None, metavar="DIR",
                         help="profile one more call per batch into DIR/B<batch>; the row gets "
                         "what the device did (trace_summary)")
+    parser.add_argument("--mutations", type=int, default=3, help="random mutations a body")
+    parser.add_argument("--classes", action="store_true",
+                        help="each batch also with the space's size classes (a row each)")
     args = parser.parse_args()
     if args.single < 0:
         parser.error("--single must be >= 0")
@@ -246,9 +252,10 @@ def main():
     frame_skip = cfg.task.frame_skip
     walk = jax.jit(jax.vmap(space.random_morphology, (0, None)), static_argnums=1)
     rows = []
-    for batch in args.batches:
+    for batch, by_class in itertools.product(args.batches, [False, True][:1 + args.classes]):
+        cfg = dataclasses.replace(cfg, classes=by_class)
         keys = jax.random.split(jax.random.PRNGKey(batch), batch)
-        morphs = walk(keys, 3)
+        morphs = walk(keys, args.mutations)
         evaluate = lambda: em.evaluate(space, morphs, keys, cfg).fitness  # noqa: B023  (timed now)
         captures = WarpCaptures()  # counted in the timed calls, after the warm-up's captures
         t_batch, repeat_diff, repeat_differing = timed(evaluate, args.repeats, captures)
@@ -276,6 +283,8 @@ def main():
                 "controllers": args.controllers,
                 "update_epochs": ppo_cfg.update_epochs,
                 "batch": batch,
+                "mutations": args.mutations,
+                "classes": by_class,
                 "env_steps_per_morphology": steps,
                 "evals_per_s": batch / t_batch,
                 "train_steps_per_s": train_rate,
@@ -297,12 +306,14 @@ def main():
                 f.write(json.dumps(rows[-1]) + "\n")
 
     print(
-        f"\n{'B':>5} {'evals/s':>9} {'steps/s':>10} {'raw phys/s':>11} {'ppo/phys':>9} "
+        f"\n{'B':>5} {'classes':>7} {'evals/s':>9} {'steps/s':>10} {'raw phys/s':>11} "
+        f"{'ppo/phys':>9} "
         f"{'1-at-a-time s':>14} {'batch s':>8} {'gain':>6} {'repeat diff':>11}"
     )
     for r in rows:
         print(
-            f"{r['batch']:>5} {r['evals_per_s']:>9.3g} {r['train_steps_per_s']:>10.3g} "
+            f"{r['batch']:>5} {str(r['classes']):>7} {r['evals_per_s']:>9.3g} "
+            f"{r['train_steps_per_s']:>10.3g} "
             f"{r['physics_steps_per_s_raw']:>11.3g} {r['ppo_over_physics']:>9.0%} "
             f"{fmt(r['one_at_a_time_s'], '>14.3g')} {r['batch_s']:>8.3g} "
             f"{fmt(r['batching_gain'], '>6.1f')} "

@@ -18,6 +18,7 @@ on the CPU; `--graph-mode` picks its CUDA graph capture (MJX's default: WARP on 
   python -m experiments.bench_physics --batch 2 --envs 2 --steps 10 --physics both  # CPU smoke
   python -m experiments.bench_physics --batch 1024 --envs 64 --physics both  # the GPU target
   python -m experiments.bench_physics --spaces constructor constructor:leg_depth=1,leg_edges=0
+  python -m experiments.bench_physics --spaces constructor --classes   # and by size class
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import mujoco
 import numpy as np
 
 import evojax_morph as em
-from evojax_morph import physics
+from evojax_morph import classes, physics
 from evojax_morph import warp as ew
 from evojax_morph.physics import mjx
 
@@ -120,6 +121,7 @@ def bench_space(
     graph_mode=None,
     naconmax: int | None = None,
     njmax: int | None = None,
+    with_classes: bool = False,
 ) -> list[dict]:
     """One row per physics kind of `physics_kinds` ("jax", "warp") for the space `spec`."""
     space = make_space(spec)
@@ -163,6 +165,8 @@ def bench_space(
             t_nested = None  # a nested vmap is wrong under Warp (see evojax_morph.warp)
             flat, flat_data = ew.to_warp(space, models, envs, naconmax, njmax, graph_mode)
             t_flat = time_rollout(rollout, flat, flat_data, repeats)
+        by_class = batch_padding(space, kind, morphs, envs, steps, repeats, graph_mode, naconmax,
+                                 njmax) if with_classes else {}
         rows.append(
             {
                 "space": spec,
@@ -180,9 +184,64 @@ def bench_space(
                 "nested_sps": rate(t_nested),
                 "flat_sps": rate(t_flat),
                 "padding_cost": 1 - t_unpadded / t_padded,
+                **by_class,
             }
         )
     return rows
+
+
+def batch_padding(space, kind, morphs, envs, steps, repeats, graph_mode, naconmax, njmax):
+    """The padding cost of the batch `morphs` (B bodies x `envs` worlds, flat) on the full
+    template and grouped by size class (`evojax_morph.classes`: each class's places, unused ones
+    m0), against the mean time of each body's own unpadded model stepping the same B x E worlds:
+    `batch_padding_cost` and `classes_padding_cost`, 1 - unpadded / padded."""
+    batch = morphs.active.shape[0]
+    worlds = batch * envs
+    bodies = em.unstack(morphs)
+    if kind == "jax":
+        shared = make_rollout(steps, batched_models=False)
+
+        def unpadded(m):
+            model = mjx.put_model(mujoco.MjModel.from_xml_string(space.to_mjcf(m)))
+            return time_rollout(shared, model, broadcast_data(model, batch, envs), repeats)
+
+        def padded(sp, ms):
+            flat, axes = physics.flat_models(jax.vmap(sp.mjx_model)(ms), envs)
+            data = broadcast_data(sp.mjx_template(), 1, ms.active.shape[0] * envs)[0]
+            return time_rollout(make_flat_rollout(steps, axes), flat, data, repeats)
+    else:
+        rollout = make_warp_rollout(steps, float(space.template.opt.timestep))
+
+        def unpadded(m):
+            mj = mujoco.MjModel.from_xml_string(space.to_mjcf(m))
+            data = ew.make_worlds(space, worlds, naconmax, njmax, mj_model=mj)
+            return time_rollout(rollout, ew.put_model(mj, graph_mode), data, repeats)
+
+        def padded(sp, ms):
+            model, data = ew.to_warp(sp, jax.vmap(sp.mjx_model)(ms), envs, naconmax, njmax,
+                                     graph_mode)
+            return time_rollout(rollout, model, data, repeats)
+
+    ideal = float(np.mean([unpadded(m) for m in bodies]))
+    full = padded(space, morphs)
+    classes_of = space.size_classes()
+    fits = [jax.vmap(c.fits)(morphs) for c, _ in classes_of] + [jnp.ones(batch, bool)]
+    need = jnp.argmax(jnp.stack(fits), axis=0)
+    shares = tuple(share for _, share in classes_of) + (space.full_share,)
+    places, ok = classes.assign(need, classes.capacities(shares, batch))
+    m0 = space.initial()
+    grouped = 0.0
+    for here, sp in zip(places, [c.space for c, _ in classes_of] + [space]):
+        ms = em.stack([bodies[i] if i < batch else m0 for i in np.asarray(here)])
+        grouped += padded(sp, ms)
+    return {
+        "bodies_per_class": np.bincount(np.asarray(need), minlength=len(shares)).tolist(),
+        "places_per_class": [int(p.shape[0]) for p in places],
+        "all_placed": bool(ok),
+        "batch_padding_cost": 1 - ideal / full,
+        "classes_padding_cost": 1 - ideal / grouped if ok else None,
+        "classes_speedup": full / grouped if ok else None,
+    }
 
 
 def main():
@@ -216,6 +275,10 @@ def main():
         default=None,
         help="Warp constraint rows per world (default warp.buffers(space))",
     )
+    parser.add_argument(
+        "--classes", action="store_true",
+        help="also the padding cost of the batch on one template and grouped by size class",
+    )
     args = parser.parse_args()
     jax.config.update("jax_default_matmul_precision", "highest")
     kinds = ["jax", "warp"] if args.physics == "both" else [args.physics]
@@ -243,6 +306,7 @@ def main():
             graph_mode,
             args.naconmax,
             args.njmax,
+            args.classes,
         ):
             print(json.dumps(row), flush=True)
             rows.append(row)

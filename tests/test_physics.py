@@ -147,6 +147,19 @@ def test_padded_template_steps_like_mujoco_c(space, num_morphs, steps, request):
     else:
         run = stepped(space, num_morphs, steps)
         check_derived_constants(space, run)
+    assert_steps_like_c(space, run)
+
+
+@pytest.mark.parametrize(
+    "which", [pytest.param(0, id="small", marks=pytest.mark.slow), pytest.param(1, id="middle")])
+def test_size_class_templates_step_like_mujoco_c(which):
+    """The Constructor's size classes (`Space.size_classes`): each class's padded template,
+    specialised to bodies of the class, steps as MuJoCo C does on their unpadded exports."""
+    size_class = em.make_space("constructor").size_classes()[which][0]
+    assert_steps_like_c(size_class.space, stepped(size_class.space, 6, 50, batches=3))
+
+
+def assert_steps_like_c(space, run: "Stepped") -> None:
     tmpl = space.template
     worst = 0.0
     for i, ref in enumerate(run.refs):

@@ -34,6 +34,8 @@ class FitnessConfig:
       `evojax_morph.engines`; the CLI resolves its "auto" before it gets here).
     table: for "table", the .npz of a table built by `python -m experiments.build_tables`;
       "" for the space's packaged table (`evojax_morph/tables/SPACE.npz`).
+    classes: for "ppo", train each body on the smallest of the space's size classes that holds
+      it (`evojax_morph.classes`; spaces without classes ignore it).
     """
 
     kind: str = "ppo"
@@ -42,6 +44,7 @@ class FitnessConfig:
     classifier: str = ""
     physics: str = "jax"
     table: str = ""
+    classes: bool = False
 
     def __post_init__(self):
         if self.physics not in list_engines():

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import jax
 
-from evojax_morph import ppo
+from evojax_morph import classes, ppo
 from evojax_morph.fitnesses.base import Fitness, FitnessConfig, FitnessResult
 from evojax_morph.spaces import Space
 
@@ -30,6 +30,10 @@ def validate(cfg: FitnessConfig) -> None:
 
 def make(space: Space, cfg: FitnessConfig):
     init, train = ppo.make_train(space, cfg.task, cfg.ppo, cfg.physics)
+    if cfg.classes and space.size_classes():
+        train = classes.grouped(space, train, [
+            ppo.make_train(c.space, cfg.task, cfg.ppo, cfg.physics, (c.limbs, space))[1]
+            for c, _ in space.size_classes()])
     env_steps = ppo.env_steps_per_morphology(cfg.task, cfg.ppo)
 
     def evaluate(keys: jax.Array, morphs, params: ppo.Params) -> FitnessResult:

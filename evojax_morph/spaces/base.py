@@ -5,7 +5,8 @@ from __future__ import annotations
 import abc
 import functools
 import json
-from typing import ClassVar
+from collections.abc import Callable
+from typing import ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -15,6 +16,22 @@ import numpy as np
 from evojax_morph import mjcf, physics
 from evojax_morph.morphology import Morphology, format_tree
 from evojax_morph.physics import mjx
+
+
+class SizeClass(NamedTuple):
+    """The bodies of a space that a smaller template holds (`Space.size_classes`).
+
+    space: the same space on the smaller template (same morphologies, mutations and nodes).
+    limbs: (L_c,) int: the slot in the full template of each limb slot of the smaller one, so
+      that a controller keeps the full template's observation and action layout
+      (`Locomotion(..., limbs=)`).
+    fits(m) -> () bool, jittable: whether `m` fits the smaller template.
+    """
+
+    name: str
+    space: Space
+    limbs: np.ndarray
+    fits: Callable[[Morphology], jax.Array]
 
 
 class Space(abc.ABC):
@@ -63,6 +80,13 @@ class Space(abc.ABC):
     @abc.abstractmethod
     def layout(self, m: Morphology) -> physics.Layout:
         """Where the capsules of `m` lie; valid geometry for inactive slots too."""
+
+    full_share: ClassVar[float] = 1.0  # with size classes: the full template's share of a batch
+
+    def size_classes(self) -> tuple[tuple[SizeClass, float], ...]:
+        """Smaller templates for the smaller bodies, smallest first, each with the share of a
+        batch it takes (`evojax_morph.classes`); none by default."""
+        return ()
 
     # --- shared machinery -----------------------------------------------------------------
 
