@@ -13,7 +13,7 @@ from evojax_morph.fitnesses import FitnessConfig, standard_ppo
 from evojax_morph.locomotion import make_task
 
 # Bodies of 8 mutations of the default Constructor: 25% fit its smallest class (docs: SHARES).
-NUM_BODIES, STEPS = 24, 100
+NUM_BODIES, STEPS = 16, 100
 
 
 @pytest.fixture(scope="module")

@@ -150,11 +150,13 @@ def test_padded_template_steps_like_mujoco_c(space, num_morphs, steps, request):
     assert_steps_like_c(space, run)
 
 
-@pytest.mark.parametrize(
-    "which", [pytest.param(0, id="small", marks=pytest.mark.slow), pytest.param(1, id="middle")])
+@pytest.mark.slow
+@pytest.mark.parametrize("which", [0, 1], ids=["small", "middle"])
 def test_size_class_templates_step_like_mujoco_c(which):
     """The Constructor's size classes (`Space.size_classes`): each class's padded template,
-    specialised to bodies of the class, steps as MuJoCo C does on their unpadded exports."""
+    specialised to bodies of the class, steps as MuJoCo C does on their unpadded exports (slow:
+    a float64 compile each, 40 s on 2 cores; the default set checks the classes' exports
+    against the full template's in tests/test_classes.py)."""
     size_class = em.make_space("constructor").size_classes()[which][0]
     assert_steps_like_c(size_class.space, stepped(size_class.space, 6, 50, batches=3))
 
