@@ -48,25 +48,32 @@ def assign(need: jax.Array, caps: list[int]) -> tuple[list[jax.Array], jax.Array
     return places, placed.all()
 
 
+def places(space: Space, morphs) -> tuple[jax.Array, list[jax.Array], jax.Array]:
+    """A batch of `space`'s bodies by size class: (need (B,), the smallest class holding each
+    body, the last index the full template; the places of each class and whether every body
+    has one, as `assign` gives them for the space's shares)."""
+    batch = morphs.active.shape[0]
+    classes = space.size_classes()
+    fits = [jax.vmap(c.fits)(morphs) for c, _ in classes] + [jnp.ones(batch, bool)]
+    need = jnp.argmax(jnp.stack(fits), axis=0)  # the first (smallest) class that fits
+    shares = tuple(share for _, share in classes) + (space.full_share,)
+    return need, *assign(need, capacities(shares, batch))
+
+
 def grouped(space: Space, train: Callable, class_trains: list[Callable]) -> Callable:
     """`train(keys, morphs, params)` (the full template's, results of (B, ...) arrays) run per
     size class: `class_trains[c]` trains on class c's template (`space.size_classes()[c]`)."""
-    classes = space.size_classes()
-    shares = tuple(share for _, share in classes) + (space.full_share,)
     trains = list(class_trains) + [train]
 
     def run(keys, morphs, params):
         batch = keys.shape[0]
-        fits = [jax.vmap(c.fits)(morphs) for c, _ in classes] + [jnp.ones(batch, bool)]
-        need = jnp.argmax(jnp.stack(fits), axis=0)  # the first (smallest) class that fits
-        places, all_placed = assign(need, capacities(shares, batch))
+        _, where, all_placed = places(space, morphs)
         m0 = space.initial()
 
         def by_class(keys, morphs, params):
             out = None
-            for here, class_train in zip(places, trains):
-                at = jnp.minimum(here, batch - 1)
-                result = class_train(keys[at], _take(morphs, here, batch, m0),
+            for here, class_train in zip(where, trains):
+                result = class_train(_take(keys, here, batch), _take(morphs, here, batch, m0),
                                      _take(params, here, batch))
                 out = _put(out, here, result, batch)
             return out

@@ -224,18 +224,16 @@ def batch_padding(space, kind, morphs, envs, steps, repeats, graph_mode, naconma
 
     ideal = float(np.mean([unpadded(m) for m in bodies]))
     full = padded(space, morphs)
-    classes_of = space.size_classes()
-    fits = [jax.vmap(c.fits)(morphs) for c, _ in classes_of] + [jnp.ones(batch, bool)]
-    need = jnp.argmax(jnp.stack(fits), axis=0)
-    shares = tuple(share for _, share in classes_of) + (space.full_share,)
-    places, ok = classes.assign(need, classes.capacities(shares, batch))
+    size_classes = [c for c, _ in space.size_classes()]
+    need, places, ok = classes.places(space, morphs)
     m0 = space.initial()
     grouped = 0.0
-    for here, sp in zip(places, [c.space for c, _ in classes_of] + [space]):
+    for here, sp in zip(places, [c.space for c in size_classes] + [space]):
         ms = em.stack([bodies[i] if i < batch else m0 for i in np.asarray(here)])
         grouped += padded(sp, ms)
     return {
-        "bodies_per_class": np.bincount(np.asarray(need), minlength=len(shares)).tolist(),
+        "classes": [c.name for c in size_classes] + ["full"],
+        "bodies_per_class": np.bincount(np.asarray(need), minlength=len(places)).tolist(),
         "places_per_class": [int(p.shape[0]) for p in places],
         "all_placed": bool(ok),
         "batch_padding_cost": 1 - ideal / full,

@@ -94,6 +94,7 @@ def test_fitness_by_class_is_the_single_templates():
     morphs = jax.vmap(space.random_morphology, (0, None))(keys, 3)
     fits = np.asarray(jax.vmap(size_class.fits)(morphs))
     assert 0 < fits.sum() < 8
+    assert bool(classes.places(space, morphs)[2])  # the classes train it, not the fallback
     params = em.init_params(space, jax.random.split(jax.random.PRNGKey(2), 8))
     fitness = {}
     for by_class in (False, True):
