@@ -1,8 +1,8 @@
 """Batched fitness across devices: evaluations per second on 1 device and on all of them.
 
-For each device count n (1 and every visible device), `em.evaluate` runs --per-device x n
-random Bad Walker bodies split over a mesh of n devices, at the standard budget of
-bench_fitness.py (10,920 control steps per body). The 1-device row is also run at the
+For each device count n (1, every visible device, and the powers of 2 between), `em.evaluate`
+runs --per-device x n random Bad Walker bodies split over a mesh of n devices, at the standard
+budget of bench_fitness.py (10,920 control steps per body). The 1-device row is also run at the
 largest batch, which shows whether one device was already full. Then the same for one
 environment step of the Double-DQN loop (mutate every body, evaluate the children, store,
 update the replicated agent) at --envs-per-device x n parallel evolutions. Speed-up = evals/s
@@ -118,13 +118,16 @@ def main():
         if args.out:
             args.out.write_text(json.dumps(row, indent=1) + "\n")
         return
-    counts = sorted({1, len(devices)})
+    # 1 device, all of them, the powers of 2 between, then one device at the largest batch
+    # (the rows the speed-ups need first: a run cut short keeps them)
+    most = len(devices)
+    counts = [1, most] + [2**k for k in range(1, most.bit_length()) if 2**k < most]
     rows = []
     for what in ("evaluate", "dqn_step") if args.envs_per_device else ("evaluate",):
         per = args.per_device if what == "evaluate" else args.envs_per_device
-        runs = [(n, per * n) for n in counts]
-        if len(devices) > 1:
-            runs.insert(1, (1, per * len(devices)))  # one device at the largest batch
+        runs = [(n, per * n) for n in dict.fromkeys(counts)]
+        if most > 1:
+            runs.append((1, per * most))  # was one device already full?
         for n, batch in runs:
             if what == "evaluate":
                 rate = bench_evaluate(space, devices[:n], batch, args.repeats, args.physics)
@@ -134,7 +137,7 @@ def main():
             rows.append({"what": what, "space": space.name, "physics": args.physics,
                          "device": devices[0].device_kind, "devices": n, "batch": batch,
                          "evals_per_s": rate, "date": datetime.date.today().isoformat(),
-                         "revision": revision()})
+                         "revision": revision(), "jax": jax.__version__})
             print(json.dumps(rows[-1]), flush=True)
             if args.out:
                 with args.out.open("a") as f:
