@@ -39,7 +39,7 @@ from evojax_morph.spaces import list_spaces
 def gpu_defaults(space: str = "bad_walker") -> dict:
     """On a GPU the same command evaluates a larger batch with a longer PPO budget, and several
     controllers per body (`gpu_controllers`); the Constructor's come from its budget benchmark
-    (`experiments.walking_budget`, docs/results.md "Bodies that walk")."""
+    (`experiments.walking_budget` at git 119441b, docs/results.md "Bodies that walk")."""
     if space == "constructor":
         return CONSTRUCTOR_GPU
     return {

@@ -40,10 +40,9 @@ import scipy.stats
 import evojax_morph as em
 from evojax_morph import plots
 from evojax_morph.confirm import t_interval
-from evojax_morph.pipeline import build, make_greedy_rollout
+from evojax_morph.pipeline import NO_OP, build, make_greedy_rollout
 from experiments.build_tables import revision
 from experiments.common import Setup, band, episode_returns, plt, run_agent, run_config, save
-from experiments.fig7_video import unroll_bodies
 
 TRAIN_STEPS = 5_000  # the source's PPO budget per evaluation (it names 3,000 and 5,000)
 
@@ -226,6 +225,23 @@ def compare_effects(runs: dict[str, dict]) -> dict:
                 "df": float(test.df), "p": float(test.pvalue)}
     return {"agents": agents, "differences": differences,
             "interval": "agents: 95% t over seeds; differences: 95% Welch t over seeds"}
+
+
+def unroll_bodies(space, unroll: dict) -> list:
+    """The bodies of a recorded greedy unroll (`{"actions": ["node 0: add_leg_start", ...],
+    "bodies": [{"body": canonical name}, ...]}`), m0 first, by replaying its mutations.
+
+    Raises:
+      ValueError: a replayed body's canonical name differs from the recorded one.
+    """
+    bodies = [space.initial()]
+    for action, recorded in zip(unroll["actions"], unroll["bodies"][1:], strict=True):
+        node, mutation = action.removeprefix("node ").removesuffix(NO_OP).split(": ")
+        bodies.append(space.mutate(bodies[-1], int(node), space.mutation_names.index(mutation)))
+        if space.canonical(bodies[-1]) != recorded["body"]:
+            raise ValueError(f"after {action!r} the body is {space.canonical(bodies[-1])}, "
+                             f"not the recorded {recorded['body']}")
+    return bodies
 
 
 def draw_unrolls(r: dict, title: str):

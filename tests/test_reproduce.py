@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from evojax_morph.spaces import make_space
-from experiments import fig7_video, reproduce
+from experiments import reproduce
 
 
 @pytest.mark.slow
@@ -78,15 +78,16 @@ def test_the_comparison_draws_each_agent_and_each_difference_with_its_interval(t
     assert d["ci95"] == pytest.approx([2 - 6.4516, 2 + 6.4516], abs=1e-3)
 
 
-def test_the_video_rebuilds_each_unroll_body_from_its_recorded_mutations():
-    """fig7_video's body: the recorded unroll's mutations replayed from m0 give, step by step,
-    the bodies the data file names; a record that disagrees is refused."""
+def test_an_unroll_is_rebuilt_from_its_recorded_mutations():
+    """The bodies Figures 5 and 7 draw: the recorded unroll's mutations replayed from m0 give,
+    step by step, the bodies the data file names; a record that disagrees is refused."""
     space = make_space("constructor")
     unroll = json.loads(Path("docs/figures/reproduce/fig7.json").read_text())["unrolls"][2]
-    assert space.canonical(fig7_video.rebuild(space, unroll)) == unroll["bodies"][-1]["body"]
+    bodies = reproduce.unroll_bodies(space, unroll)
+    assert [space.canonical(m) for m in bodies] == [b["body"] for b in unroll["bodies"]]
     wrong = {**unroll, "actions": ["node 0: add_leg_end"] + unroll["actions"][1:]}
     with pytest.raises(ValueError, match="not the recorded"):
-        fig7_video.rebuild(space, wrong)
+        reproduce.unroll_bodies(space, wrong)
 
 
 def test_the_walking_comparison_gives_every_method_10_seeds_of_equal_evaluations():

@@ -1,6 +1,5 @@
 """Tasks by name, what each pays for, and the gait numbers a task measures."""
 
-import json
 
 import jax
 import jax.numpy as jnp
@@ -86,24 +85,3 @@ def test_a_body_pushed_forward_moves_the_distance_it_should():
         np.testing.assert_allclose(state.reward, 1.5 + task.healthy_reward, rtol=1e-4)
     np.testing.assert_allclose(forward, 0.03, rtol=1e-4)
     np.testing.assert_allclose(state.data.qpos[x] - qpos[x], 0.3, rtol=1e-4)
-
-
-@pytest.mark.slow  # a PPO program at a CPU budget: about 2 minutes
-def test_the_budget_benchmark_runs_and_resumes(tmp_path, capsys):
-    """`experiments.walking_budget` at a CPU size: a cell's data file holds (bodies, seeds)
-    fitness, distance and upright of the random bodies and Figure 7's three, its figures in
-    range, and a second call with the same settings runs nothing."""
-    from experiments import walking_budget
-
-    args = ["--bodies", "2", "--seeds", "2", "--seeds-per-call", "1", "--cells", "walk:320",
-            "--tiny", "--out", str(tmp_path)]
-    walking_budget.main(args)
-    cell = json.loads((tmp_path / "walk_320.json").read_text())
-    assert cell["task"]["name"] == "walk" and cell["train_steps"] == 320 and cell["seeds"] == 2
-    assert len(cell["bodies"]) == 5 and cell["fig7_bodies"] == cell["bodies"][2:]
-    for key in ("fitness", "distance", "upright"):
-        assert np.asarray(cell[key]).shape == (5, 2) and np.isfinite(cell[key]).all()
-    assert 0 <= cell["whole"] <= 1 and -1 <= cell["split_half"] <= 1
-    assert (tmp_path / "budget.png").stat().st_size > 0
-    walking_budget.main(args)
-    assert "walk:320: done before" in capsys.readouterr().out
