@@ -133,9 +133,7 @@ def landscape_fitness(
     return fitness, seconds, [space.canonical(m) for m in bodies]
 
 
-def cost(
-    space, cfg: em.PPOConfig, k: int, batch: int, repeats: int, physics: str = "jax"
-) -> dict:
+def cost(space, cfg: em.PPOConfig, k: int, batch: int, repeats: int, physics: str = "jax") -> dict:
     """Seconds per evaluation of one call on `batch` random bodies with k controllers each."""
     cfg = dataclasses.replace(cfg, controllers=k)
     init, train, compile_s = compiled_train(space, cfg, batch, physics)
@@ -286,9 +284,7 @@ def main(argv=None):
         if path.exists() and json.loads(path.read_text())["settings"] == settings:
             print(f"{name}: already in {path}", flush=True)
             continue
-        fitness, seconds, keys = landscape_fitness(
-            space, cfg, args.seeds, args.batch, args.physics
-        )
+        fitness, seconds, keys = landscape_fitness(space, cfg, args.seeds, args.batch, args.physics)
         stats = [
             statistics(fitness, k, agg) for agg in AGGREGATES for k in args.ks if k <= args.seeds
         ]

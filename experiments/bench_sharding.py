@@ -91,15 +91,10 @@ def main():
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument(
-        "--per-device", type=int, default=16, help="bodies per device for em.evaluate"
-    )
-    parser.add_argument(
-        "--envs-per-device",
-        type=int,
-        default=0,
-        help="DQN parallel evolutions per device (0: skip)",
-    )
+    parser.add_argument("--per-device", type=int, default=16,
+                        help="bodies per device for em.evaluate")
+    parser.add_argument("--envs-per-device", type=int, default=0,
+                        help="DQN parallel evolutions per device (0: skip)")
     parser.add_argument("--dqn-train-steps", type=int, default=5_000)
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--space", default="bad_walker")

@@ -130,9 +130,7 @@ def build(args) -> tables.Table:
     if out.exists():
         table = tables.Table.load(out)
         had = {k: table.meta.get(k) for k in want}
-        if table.space != space.name or table.names != names or had != json.loads(
-            json.dumps(want)
-        ):
+        if table.space != space.name or table.names != names or had != json.loads(json.dumps(want)):
             sys.exit(f"{out} holds a table of other settings; pass another --out or remove it\n"
                      f"  it has:  {had}\n  wanted: {want}")
         print(f"resuming {out}: {int(table.done.sum())} of {table.done.size} results done")

@@ -323,8 +323,7 @@ def main():
         old = json.loads(path.read_text())
         if old.get("settings") == summary["settings"]:
             summary["results"] = old.get("results", {})
-            print("resuming: kept", {k: list(v) for k, v in summary["results"].items()},
-                  flush=True)
+            print("resuming: kept", {k: list(v) for k, v in summary["results"].items()}, flush=True)
     for k in args.ks:
         for method in args.methods.split(","):
             if method not in list_agents():

@@ -84,8 +84,7 @@ STAGES = {  # a stage runs these groups and unrolls in turn; each group is a sta
 
 def toy(g: Group) -> Group:
     """The CPU smoke's size: 2 seeds of 2 evolutions x 8 steps (an episode of either space)."""
-    return dataclasses.replace(g, num_envs=2, steps=8, chunk=4, seeds=2,
-                               hidden=min(g.hidden, 20))
+    return dataclasses.replace(g, num_envs=2, steps=8, chunk=4, seeds=2, hidden=min(g.hidden, 20))
 
 
 def setup_of(g: Group, args) -> Setup:
@@ -115,8 +114,7 @@ def confirm(space, morphs: list, key, args) -> list[dict]:
     distinct = {space.canonical(m): m for m in morphs}
     cfg = em.FitnessConfig(kind="ppo", task=em.make_task(args.task), physics=args.physics,
                            ppo=em.standard_ppo(args.train_steps, 1))
-    found = em.confirm(space, em.stack(list(distinct.values())), key, cfg,
-                       args.confirm_controllers)
+    found = em.confirm(space, em.stack(list(distinct.values())), key, cfg, args.confirm_controllers)
     by_name = {c.body: {"body": c.body, "mean": c.mean, "ci95": list(c.ci95),
                         "controllers": len(c.values), "distance": float(c.distance.mean()),
                         "upright": float(c.upright.mean()), "upright_whole": c.upright_whole}
@@ -147,8 +145,7 @@ def run_group(name: str, g: Group, args, deadline: float) -> bool:
         data["returned_draw"] = res["best_fitness"].tolist()
     if name in UNROLLS.values():  # the trained agents, for the unroll figure
         keep = {"learner": res["states"].learner, "first": res["states"].first}
-        (args.data / f"{name}.agents").write_bytes(pickle.dumps(
-            jax.device_get(keep)))
+        (args.data / f"{name}.agents").write_bytes(pickle.dumps(jax.device_get(keep)))
     path.write_text(json.dumps(record(g, args, res["seconds"], **data), indent=1))
     print(f"{name}: done in {res['seconds']:.0f} s", flush=True)
     return True
@@ -322,8 +319,7 @@ def draw(data: Path, out: Path) -> None:
         ax_m.set_xticks(range(len(names)), names)
         ax_m.set_title("each run's returned body, confirmed (colour);\n"
                        "mean over seeds with 95% t-CI (black)", fontsize=10)
-        ax_m.set(
-                 ylabel=f"mean of {e['controllers']} fresh controllers (95% CI)")
+        ax_m.set(ylabel=f"mean of {e['controllers']} fresh controllers (95% CI)")
         for j, d in enumerate(effects["differences"].values()):
             lo, hi = d["difference"] - d["ci95"][0], d["ci95"][1] - d["difference"]
             ax_d.errorbar(j, d["difference"], yerr=[[lo], [hi]], fmt="s", capsize=5, color="k")
