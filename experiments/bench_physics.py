@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 
 import jax
@@ -121,7 +122,7 @@ def bench_space(
     graph_mode=None,
     naconmax: int | None = None,
     njmax: int | None = None,
-    with_classes: bool = False,
+    ideal_bodies: int = 0,
 ) -> list[dict]:
     """One row per physics kind of `physics_kinds` ("jax", "warp") for the space `spec`."""
     space = make_space(spec)
@@ -166,7 +167,7 @@ def bench_space(
             flat, flat_data = ew.to_warp(space, models, envs, naconmax, njmax, graph_mode)
             t_flat = time_rollout(rollout, flat, flat_data, repeats)
         by_class = batch_padding(space, kind, morphs, envs, steps, repeats, graph_mode, naconmax,
-                                 njmax) if with_classes else {}
+                                 njmax, ideal_bodies) if ideal_bodies else {}
         rows.append(
             {
                 "space": spec,
@@ -190,14 +191,12 @@ def bench_space(
     return rows
 
 
-IDEAL_BODIES = 8
-
-
-def batch_padding(space, kind, morphs, envs, steps, repeats, graph_mode, naconmax, njmax):
+def batch_padding(space, kind, morphs, envs, steps, repeats, graph_mode, naconmax, njmax,
+                  ideal_bodies: int):
     """The padding cost of the batch `morphs` (B bodies x `envs` worlds, flat) on the full
     template and grouped by size class (`evojax_morph.classes`: each class's places, unused ones
     m0), against the mean time of each body's own unpadded model stepping the same B x E worlds
-    (over the first IDEAL_BODIES bodies, a random sample: each unpadded body compiles anew):
+    (over the first `ideal_bodies`, a random sample: each unpadded body compiles anew):
     `batch_padding_cost` and `classes_padding_cost`, 1 - unpadded / padded."""
     batch = morphs.active.shape[0]
     worlds = batch * envs
@@ -226,7 +225,7 @@ def batch_padding(space, kind, morphs, envs, steps, repeats, graph_mode, naconma
                                      graph_mode)
             return time_rollout(rollout, model, data, repeats)
 
-    ideal = float(np.mean([unpadded(m) for m in bodies[:IDEAL_BODIES]]))
+    ideal = float(np.mean([unpadded(m) for m in bodies[:ideal_bodies]]))
     full = padded(space, morphs)
     size_classes = [c for c, _ in space.size_classes()]
     need, places, ok = classes.places(space, morphs)
@@ -235,12 +234,14 @@ def batch_padding(space, kind, morphs, envs, steps, repeats, graph_mode, naconma
     for here, sp in zip(places, [c.space for c in size_classes] + [space]):
         ms = em.stack([bodies[i] if i < batch else m0 for i in np.asarray(here)])
         grouped += padded(sp, ms)
+        print(f"{kind}: a class of {len(ms.active)} places, {grouped:.4f} s so far (one template "
+              f"{full:.4f} s, unpadded {ideal:.4f} s)", file=sys.stderr, flush=True)
     return {
         "classes": [c.name for c in size_classes] + ["full"],
         "bodies_per_class": np.bincount(np.asarray(need), minlength=len(places)).tolist(),
         "places_per_class": [int(p.shape[0]) for p in places],
         "all_placed": bool(ok),
-        "unpadded_bodies": min(batch, IDEAL_BODIES),
+        "unpadded_bodies": min(batch, ideal_bodies),
         "batch_padding_cost": 1 - ideal / full,
         "classes_padding_cost": 1 - ideal / grouped if ok else None,
         "classes_speedup": full / grouped if ok else None,
@@ -272,16 +273,14 @@ def main():
     parser.add_argument(
         "--naconmax", type=int, default=None, help="Warp contacts per world (default: buffers)"
     )
-    parser.add_argument(
-        "--njmax",
-        type=int,
-        default=None,
-        help="Warp constraint rows per world (default warp.buffers(space))",
-    )
+    parser.add_argument("--njmax", type=int, default=None,
+                        help="Warp constraint rows per world (default warp.buffers(space))")
     parser.add_argument(
         "--classes", action="store_true",
         help="also the padding cost of the batch on one template and grouped by size class",
     )
+    parser.add_argument("--ideal-bodies", type=int, default=8,
+                        help="--classes: the bodies whose unpadded models set the ideal time")
     args = parser.parse_args()
     jax.config.update("jax_default_matmul_precision", "highest")
     kinds = ["jax", "warp"] if args.physics == "both" else [args.physics]
@@ -309,7 +308,7 @@ def main():
             graph_mode,
             args.naconmax,
             args.njmax,
-            args.classes,
+            args.ideal_bodies if args.classes else 0,
         ):
             print(json.dumps(row), flush=True)
             rows.append(row)
