@@ -159,14 +159,9 @@ def test_landscape_enumerates_ranks_and_round_trips(tmp_path):
             ["--steps", "8", "--chunk", "8", "--num-envs", "4", "--seeds", "2"],
             "fig4_predefined",
         ),
-        (
-            "landscapes",
-            ["--spaces", "bad_walker", "--train-steps", "160", "--seeds", "1", "--batch", "96"],
-            "landscape_bad_walker",
-        ),
     ],
 )
-@pytest.mark.slow  # each script compiles its agents (landscapes: a PPO program): minutes in all
+@pytest.mark.slow  # the script compiles its agents: minutes
 def test_experiment_scripts_run_at_a_tiny_budget(script, args, output, tmp_path, monkeypatch):
     """`python -m experiments.SCRIPT ...` from the project root, in this process."""
     monkeypatch.syspath_prepend(str(ROOT))
