@@ -207,7 +207,8 @@ class Constructor(Space):
           geom: (max_nodes,) int32: the geom slot of each node's capsule (0 if inactive).
           legs: (B,) int32 leg slots filled in each body; edges: (B,) int32 edge slots filled.
         """
-        leg_slots, edge_slots = jnp.asarray(self.leg_slots), jnp.asarray(self.edge_slots)
+        leg_slots = jnp.asarray(self.leg_slots, jnp.int32)  # int32 under x64 too
+        edge_slots = jnp.asarray(self.edge_slots, jnp.int32)
         num_bodies = len(self.body_parent)
         body = jnp.zeros(self.max_nodes, jnp.int32)
         geom = jnp.zeros(self.max_nodes, jnp.int32)
@@ -221,7 +222,7 @@ class Constructor(Space):
             leg_body = leg_slots[host, jnp.minimum(slot, leg_slots.shape[1] - 1)]
             edge_geom = edge_slots[host, jnp.minimum(slot, edge_slots.shape[1] - 1)]
             body = body.at[i].set(jnp.where(on, jnp.where(is_leg, leg_body, host), 0))
-            leg_geom = jnp.asarray(self.leg_geom)[jnp.maximum(leg_body, 0)]
+            leg_geom = jnp.asarray(self.leg_geom, jnp.int32)[jnp.maximum(leg_body, 0)]
             geom = geom.at[i].set(jnp.where(on, jnp.where(is_leg, leg_geom, edge_geom), 0))
             legs = legs.at[host].add(on & is_leg)
             edges = edges.at[host].add(on & ~is_leg)
