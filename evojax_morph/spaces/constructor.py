@@ -116,15 +116,16 @@ class Constructor(Space):
         self.body_parent = np.array(body_parent)  # (B,)
         num_bodies = len(body_parent)
         width = max(len(c) for c in child_legs)
-        self.leg_slots = np.full((num_bodies, max(width, 1)), -1)  # (B, K): body ids, -1 none
+        # int32 (as the morphologies), under x64 too
+        self.leg_slots = np.full((num_bodies, max(width, 1)), -1, np.int32)  # (B, K): body ids
         for b, c in enumerate(child_legs):
             self.leg_slots[b, : len(c)] = c
         self.num_leg_slots = np.array([len(c) for c in child_legs])  # (B,)
         # GEOMS: the stick; the trunk's edges; then each leg's capsule and its edges
         edges = [self.trunk_edges] + [leg_edges] * (num_bodies - 1)
-        self.edge_slots = np.full((num_bodies, max(max(edges), 1)), -1)  # (B, E): geom ids
+        self.edge_slots = np.full((num_bodies, max(max(edges), 1)), -1, np.int32)  # (B, E): geoms
         geom_body, geom_names = [0], ["geom0"]
-        self.leg_geom = np.zeros(num_bodies, int)  # (B,): each leg body's capsule (0 for the trunk)
+        self.leg_geom = np.zeros(num_bodies, np.int32)  # (B,): each leg body's capsule (0: trunk)
         for b in range(num_bodies):
             if b > 0:
                 self.leg_geom[b] = len(geom_body)
@@ -207,8 +208,7 @@ class Constructor(Space):
           geom: (max_nodes,) int32: the geom slot of each node's capsule (0 if inactive).
           legs: (B,) int32 leg slots filled in each body; edges: (B,) int32 edge slots filled.
         """
-        leg_slots = jnp.asarray(self.leg_slots, jnp.int32)  # int32 under x64 too
-        edge_slots = jnp.asarray(self.edge_slots, jnp.int32)
+        leg_slots, edge_slots = jnp.asarray(self.leg_slots), jnp.asarray(self.edge_slots)
         num_bodies = len(self.body_parent)
         body = jnp.zeros(self.max_nodes, jnp.int32)
         geom = jnp.zeros(self.max_nodes, jnp.int32)
@@ -222,7 +222,7 @@ class Constructor(Space):
             leg_body = leg_slots[host, jnp.minimum(slot, leg_slots.shape[1] - 1)]
             edge_geom = edge_slots[host, jnp.minimum(slot, edge_slots.shape[1] - 1)]
             body = body.at[i].set(jnp.where(on, jnp.where(is_leg, leg_body, host), 0))
-            leg_geom = jnp.asarray(self.leg_geom, jnp.int32)[jnp.maximum(leg_body, 0)]
+            leg_geom = jnp.asarray(self.leg_geom)[jnp.maximum(leg_body, 0)]
             geom = geom.at[i].set(jnp.where(on, jnp.where(is_leg, leg_geom, edge_geom), 0))
             legs = legs.at[host].add(on & is_leg)
             edges = edges.at[host].add(on & ~is_leg)
