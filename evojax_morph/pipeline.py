@@ -19,7 +19,7 @@ from evojax_morph.evolution import EvolutionEnv, masked_argmax
 from evojax_morph.fitness import make_fitness_fn
 from evojax_morph.fitnesses import FitnessConfig, get_fitness, standard_ppo
 from evojax_morph.locomotion import make_task
-from evojax_morph.sharding import to_host
+from evojax_morph.sharding import batch_mesh, to_host
 from evojax_morph.spaces import Space, make_space
 
 
@@ -95,7 +95,10 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
         )
         agent_cfg = agents.config_for_run(cfg.agent, env, run)
     agent = agents.make_agent(cfg.agent, env, agent_cfg, mesh)
-    greedy_env = dataclasses.replace(env, num_envs=1)
+    # One body a call: the greedy rollout runs on one device of this process, a program with
+    # no cross-device communication (split over 2 GPUs with Warp it hung, docs/benchmarks.md).
+    one = make_fitness_fn(space, fit_cfg, batch_mesh(jax.local_devices()[:1]))[1]
+    greedy_env = dataclasses.replace(env, num_envs=1, fitness_fn=one)
     return Pipeline(space, fit_cfg, init_fn, fitness_fn, env, agent, greedy_env)
 
 
@@ -122,13 +125,12 @@ def action_name(space, action: int, before, after) -> str:
 def make_greedy_rollout(p: Pipeline):
     """`rollout(learner, first, key) -> Greedy`: from m0 (as `first`, the evaluated start of
     env 0), the agent's greedy mutations, with each body's fitness and controller. Compiled
-    once, reused across calls."""
+    once, reused across calls, on the first device of this process (`build`)."""
     space, env1, scores = p.space, p.greedy_env, p.agent.scores
+    device = jax.local_devices()[0]
 
     @jax.jit
-    def run(learner, first, key):
-        evo = jax.tree.map(lambda x: x[:1], first)
-
+    def run(learner, evo, key):
         def body(evo, key):
             obs = env1.observe(evo)
             action = masked_argmax(scores(learner, obs), obs.mask)
@@ -139,7 +141,12 @@ def make_greedy_rollout(p: Pipeline):
         _, (morphs, params, fitness, actions) = jax.lax.scan(body, evo, keys)
         return morphs, params, fitness, actions
 
+    def on_device(learner, first, key):  # env 0 of `first`; with the rest, on `device`
+        first = jax.tree.map(lambda x: x[:1], first)
+        return jax.device_put(to_host((learner, first, key)), device)
+
     def rollout(learner, first, key) -> Greedy:
+        learner, first, key = on_device(learner, first, key)
         morphs, params, fitness, actions = to_host(run(learner, first, key))
         first_morph, first_params, first_fitness = to_host((first.morph, first.params,
                                                             first.fitness))
@@ -156,5 +163,11 @@ def make_greedy_rollout(p: Pipeline):
             params=[p0] + [at(params, i) for i in steps],
         )
 
-    rollout.lower = run.lower  # its program, for compiling ahead (`warmup`)
+    def lower(learner, first, key):  # the abstract arguments (`driver.compile_ahead`)
+        place = lambda x: jax.ShapeDtypeStruct(  # noqa: E731
+            x.shape, x.dtype, sharding=jax.sharding.SingleDeviceSharding(device))
+        first = jax.tree.map(lambda x: jax.ShapeDtypeStruct((1,) + x.shape[1:], x.dtype), first)
+        return run.lower(*jax.tree.map(place, (learner, first, key)))
+
+    rollout.lower = lower  # its program, for compiling ahead (`warmup`)
     return rollout
