@@ -55,7 +55,7 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     the files and prints. The programs called after m0's compile ahead (`compile_ahead`)."""
     # Lowered on the warmup thread while m0 compiles and runs, and compiled there unless Warp
     # runs on a GPU, where a compile's autotuning breaks a Warp call's graph capture (`warmup`).
-    # With Warp on several GPUs not even lowered ahead: such runs hung after their steps.
+    # With Warp on several GPUs not even lowered ahead (runs there hung; `warmup`).
     warp_gpu = cfg.physics == "warp" and jax.default_backend() == "gpu"
     ahead = Warmup(on=False if warp_gpu and jax.device_count() > 1 else None,
                    compiles=not warp_gpu)

@@ -24,11 +24,11 @@ set Warp's default device for the whole process hold Warp's call lock
 (`evojax_morph.warp.callback_lock`).
 docs/benchmarks.md, "Compiling on the second thread breaks Warp's graph capture".
 
-With Warp on several GPUs even lowering ahead hung: 4 runs of 4 on 2 H100s stopped in the
-greedy rollout after their steps (2 on jax 0.11.2, 2 on 0.10.2, the batch split by
-`jax.shard_map`), and the same run with `EVOJAX_MORPH_WARMUP=0` finished (0.10.2); so the run
-turns the warmup off there
-(`driver.execute`). docs/benchmarks.md, "The Warp fitness across GPUs".
+With Warp on several GPUs the run turns the warmup off (`driver.execute`): runs on 2 H100s
+stopped in the greedy rollout after their steps, 4 of 4 with the warmup on. It was not the
+cause: with it off 1 of 2 hung too. The greedy rollout split across the GPUs was, most likely,
+and now runs on one device (`pipeline.make_greedy_rollout`); whether the warmup could come back
+there was not tried. docs/benchmarks.md, "The Warp fitness across GPUs".
 """
 
 from __future__ import annotations
