@@ -29,6 +29,8 @@ them off: they buy no reproducibility there); --warp-deterministic MuJoCo Warp's
   python -m experiments.bench_fitness --batches 1 256 1024 4096 --physics warp
   python -m experiments.bench_fitness --space constructor --batches 256 --physics warp \
       --single 0 --mutations 8 --classes   # one template against size classes
+  python -m experiments.bench_fitness --space constructor --mutations 8 --classes \
+      --agreement 16 --seeds 8 --train-steps 2000   # ...and in distribution (CPU)
   python -m experiments.bench_fitness --batches 1024 --physics warp --single 0 \
       --trace /tmp/trace   # where the device's time goes
 """
@@ -47,10 +49,12 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.stats
 
 import evojax_morph as em
 from evojax_morph import engines, ppo
 from evojax_morph import warp as ew
+from evojax_morph.confirm import t_interval
 from evojax_morph.physics import MUJOCO_WARP
 
 STANDARD = em.FitnessConfig(ppo=em.standard_ppo(10_000))
@@ -202,19 +206,40 @@ def make_raw_physics(engine: engines.Engine, space, steps: int):
     return jax.jit(rollout, static_argnums=1)
 
 
+def agreement(space, ways: dict, bodies: int, seeds: int, mutations: int) -> dict:
+    """`bodies` random bodies of `mutations` mutations, each trained from scratch with `seeds`
+    keys in each of two `ways` (name: (FitnessConfig, mesh)), the same keys, so only the way
+    differs (a trained fitness is not fixed by its key across batches, `em.evaluate`: compare
+    the distributions). The means; the mean over bodies of their differences (the second way
+    minus the first) with its 95% interval; the Spearman of the body means, beside the first
+    way's split half (its even keys' body means against its odd keys'), what noise allows."""
+    keys = jax.random.split(jax.random.PRNGKey(7), bodies)
+    morphs = jax.jit(jax.vmap(space.random_morphology, (0, None)), static_argnums=1)(keys,
+                                                                                     mutations)
+    morphs = jax.tree.map(lambda x: jnp.repeat(x, seeds, 0), morphs)  # body i: rows i*S..
+    keys = jax.random.split(jax.random.PRNGKey(8), bodies * seeds)
+    (a, fa), (b, fb) = [(name, np.asarray(em.evaluate(space, morphs, keys, cfg, mesh=mesh)
+                                          .fitness).reshape(bodies, seeds))
+                        for name, (cfg, mesh) in ways.items()]
+    diff = fb.mean(1) - fa.mean(1)  # per body, the paired design's differences
+    rho = lambda x, y: float(scipy.stats.spearmanr(x, y).statistic)  # noqa: E731
+    return {"space": space.name, "device": jax.devices()[0].device_kind, "bodies": bodies,
+            "seeds": seeds, "mutations": mutations, f"mean_{a}": float(fa.mean()),
+            f"mean_{b}": float(fb.mean()), "difference": float(diff.mean()),
+            "difference_ci95": t_interval(diff), "spearman_body_means": rho(fa.mean(1),
+                                                                          fb.mean(1)),
+            f"spearman_split_half_{a}": rho(fa[:, ::2].mean(1), fa[:, 1::2].mean(1)),
+            "jax": jax.__version__, "date": time.strftime("%Y-%m-%d")}
+
+
 def main():
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--space", default="bad_walker")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 16])
     parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument(
-        "--single",
-        type=int,
-        default=8,
-        help="bodies timed one at a time (B = 1 calls) for the batching gain; 0 skips it",
-    )
+    parser.add_argument("--single", type=int, default=8, help="bodies timed one at a time (B = 1 "
+                        "calls) for the batching gain; 0 skips it")
     parser.add_argument("--physics", default="jax", choices=engines.list_engines())
     parser.add_argument("--train-steps", type=int, default=10_000)
     parser.add_argument("--controllers", type=int, default=1)
@@ -233,6 +258,10 @@ def main():
     parser.add_argument("--mutations", type=int, default=3, help="random mutations a body")
     parser.add_argument("--classes", action="store_true",
                         help="each batch also with the space's size classes (a row each)")
+    parser.add_argument("--agreement", type=int, default=0, metavar="N",
+                        help="instead of timings: N bodies x --seeds keys with "
+                        "one template and with size classes, in distribution (`agreement`)")
+    parser.add_argument("--seeds", type=int, default=16, help="keys per body for --agreement")
     args = parser.parse_args()
     if args.single < 0:
         parser.error("--single must be >= 0")
@@ -250,6 +279,16 @@ def main():
     cfg = em.FitnessConfig(ppo=ppo_cfg, physics=args.physics)
     steps = ppo.env_steps_per_morphology(cfg.task, cfg.ppo)
     frame_skip = cfg.task.frame_skip
+    if args.agreement:
+        ways = {"one_template": (cfg, None), "classes": (dataclasses.replace(cfg, classes=True),
+                                                         None)}
+        row = agreement(space, ways, args.agreement, args.seeds, args.mutations) | {
+            "physics": args.physics, "train_steps": args.train_steps}
+        print(json.dumps(row))
+        if args.out:
+            with open(args.out, "a") as f:
+                f.write(json.dumps(row) + "\n")
+        return
     walk = jax.jit(jax.vmap(space.random_morphology, (0, None)), static_argnums=1)
     rows = []
     for batch, by_class in itertools.product(args.batches, [False, True][:1 + args.classes]):
@@ -271,54 +310,35 @@ def main():
         physics_rate = batch * worlds * 100 / t_phys
 
         train_rate = batch * steps / t_batch
-        rows.append(
-            {
-                "space": args.space,
-                "physics": args.physics,
-                "device": jax.devices()[0].device_kind,
-                "deterministic": args.deterministic,
-                "mujoco_warp": MUJOCO_WARP if args.physics == "warp" else None,
-                "warp_deterministic": args.warp_deterministic,
-                "train_steps": args.train_steps,
-                "controllers": args.controllers,
-                "update_epochs": ppo_cfg.update_epochs,
-                "batch": batch,
-                "mutations": args.mutations,
-                "classes": by_class,
-                "env_steps_per_morphology": steps,
-                "evals_per_s": batch / t_batch,
-                "train_steps_per_s": train_rate,
-                "physics_steps_per_s_raw": physics_rate,
-                "ppo_over_physics": train_rate * frame_skip / physics_rate,
-                "one_at_a_time_s": t_single,
-                "batch_s": t_batch,
-                "batching_gain": None if t_single is None else t_single / t_batch,
-                "repeat_diff": repeat_diff,
-                "repeat_differing": repeat_differing,  # of `batch` fitness values
-                "warp_graph_captures": captures.count if args.physics == "warp" else None,
-                "trace": trace,
-                "date": time.strftime("%Y-%m-%d"),
-            }
-        )
+        warp = args.physics == "warp"
+        rows.append({
+            "space": args.space, "physics": args.physics, "device": jax.devices()[0].device_kind,
+            "deterministic": args.deterministic, "mujoco_warp": MUJOCO_WARP if warp else None,
+            "warp_deterministic": args.warp_deterministic, "train_steps": args.train_steps,
+            "controllers": args.controllers, "update_epochs": ppo_cfg.update_epochs,
+            "batch": batch, "mutations": args.mutations, "classes": by_class,
+            "env_steps_per_morphology": steps, "evals_per_s": batch / t_batch,
+            "train_steps_per_s": train_rate, "physics_steps_per_s_raw": physics_rate,
+            "ppo_over_physics": train_rate * frame_skip / physics_rate,
+            "one_at_a_time_s": t_single, "batch_s": t_batch,
+            "batching_gain": None if t_single is None else t_single / t_batch,
+            "repeat_diff": repeat_diff,
+            "repeat_differing": repeat_differing,  # of `batch` fitness values
+            "warp_graph_captures": captures.count if warp else None, "trace": trace,
+            "date": time.strftime("%Y-%m-%d")})
         print(json.dumps(rows[-1]), flush=True)
         if args.out:
             with open(args.out, "a") as f:
                 f.write(json.dumps(rows[-1]) + "\n")
 
-    print(
-        f"\n{'B':>5} {'classes':>7} {'evals/s':>9} {'steps/s':>10} {'raw phys/s':>11} "
-        f"{'ppo/phys':>9} "
-        f"{'1-at-a-time s':>14} {'batch s':>8} {'gain':>6} {'repeat diff':>11}"
-    )
+    print(f"\n{'B':>5} {'classes':>7} {'evals/s':>9} {'steps/s':>10} {'raw phys/s':>11} "
+          f"{'ppo/phys':>9} {'1-at-a-time s':>14} {'batch s':>8} {'gain':>6} {'repeat diff':>11}")
     for r in rows:
-        print(
-            f"{r['batch']:>5} {str(r['classes']):>7} {r['evals_per_s']:>9.3g} "
-            f"{r['train_steps_per_s']:>10.3g} "
-            f"{r['physics_steps_per_s_raw']:>11.3g} {r['ppo_over_physics']:>9.0%} "
-            f"{fmt(r['one_at_a_time_s'], '>14.3g')} {r['batch_s']:>8.3g} "
-            f"{fmt(r['batching_gain'], '>6.1f')} "
-            f"{r['repeat_diff']:>11.3g} {r['repeat_differing']:>4}/{r['batch']}"
-        )
+        print(f"{r['batch']:>5} {str(r['classes']):>7} {r['evals_per_s']:>9.3g} "
+              f"{r['train_steps_per_s']:>10.3g} {r['physics_steps_per_s_raw']:>11.3g} "
+              f"{r['ppo_over_physics']:>9.0%} {fmt(r['one_at_a_time_s'], '>14.3g')} "
+              f"{r['batch_s']:>8.3g} {fmt(r['batching_gain'], '>6.1f')} "
+              f"{r['repeat_diff']:>11.3g} {r['repeat_differing']:>4}/{r['batch']}")
 
 
 if __name__ == "__main__":

@@ -249,9 +249,8 @@ def batch_padding(space, kind, morphs, envs, steps, repeats, graph_mode, naconma
 
 
 def main():
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument(
         "--spaces",
         nargs="+",

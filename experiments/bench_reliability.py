@@ -220,9 +220,8 @@ def plot(results: list[dict], path: Path) -> None:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--variants", nargs="+", default=["standard"], choices=list(VARIANTS))
     parser.add_argument(
         "--seeds", type=int, default=32, help="single-controller evaluations per body"

@@ -30,15 +30,13 @@ import json
 from pathlib import Path
 
 import jax
-import numpy as np
-import scipy.stats
 
 import evojax_morph as em
 from evojax_morph.agents import dqn
-from evojax_morph.confirm import t_interval
 from evojax_morph.pipeline import RunConfig, build
 from evojax_morph.sharding import batch_mesh
 from experiments.bench_fitness import STANDARD, median_time
+from experiments.bench_fitness import agreement as fitness_agreement
 from experiments.build_tables import revision
 
 
@@ -66,31 +64,16 @@ def bench_dqn_step(space, devices, num_envs: int, train_steps: int, repeats: int
 
 
 def agreement(space, devices, bodies: int, seeds: int, physics: str) -> dict:
-    """`bodies` random bodies, each trained from scratch with `seeds` keys, on devices[:1] and on
-    all `devices`: the same keys, so only the split differs (a trained fitness is not fixed by
-    its key across batches, fitness.evaluate: compare the distributions)."""
-    keys = jax.random.split(jax.random.PRNGKey(7), bodies)
-    morphs = jax.jit(jax.vmap(space.random_morphology, (0, None)), static_argnums=1)(keys, 3)
-    morphs = jax.tree.map(lambda x: jax.numpy.repeat(x, seeds, 0), morphs)  # body i: rows i*S..
-    keys = jax.random.split(jax.random.PRNGKey(8), bodies * seeds)
+    """`bench_fitness.agreement` of one device against all `devices`."""
     cfg = dataclasses.replace(STANDARD, physics=physics)
-    f = {n: np.asarray(em.evaluate(space, morphs, keys, cfg, mesh=batch_mesh(devices[:n])).fitness)
-         .reshape(bodies, seeds) for n in sorted({1, len(devices)})}
-    one, many = f[1], f[len(devices)]
-    diff = many.mean(1) - one.mean(1)  # per body, the paired design's differences
-    return {"space": space.name, "physics": physics, "device": devices[0].device_kind,
-            "devices": len(devices), "bodies": bodies, "seeds": seeds,
-            "mean_1": float(one.mean()), "mean_n": float(many.mean()),
-            "difference": float(diff.mean()), "difference_ci95": t_interval(diff),
-            "spearman_body_means": float(
-                scipy.stats.spearmanr(one.mean(1), many.mean(1)).statistic),
-            "date": datetime.date.today().isoformat(), "revision": revision()}
+    ways = {"1": (cfg, batch_mesh(devices[:1])), "n": (cfg, batch_mesh(devices))}
+    return fitness_agreement(space, ways, bodies, seeds, 3) | {
+        "physics": physics, "devices": len(devices), "revision": revision()}
 
 
 def main():
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--per-device", type=int, default=16,
                         help="bodies per device for em.evaluate")
     parser.add_argument("--envs-per-device", type=int, default=0,

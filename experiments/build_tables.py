@@ -197,9 +197,8 @@ def build(args) -> tables.Table:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     start_deterministic(argv)  # before JAX starts a backend
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     add = parser.add_argument
     add("--space", required=True, help="an enumerable space: bad_walker or length_walker")
     add("--seeds", type=int, default=32, help="independent results per body")

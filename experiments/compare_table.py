@@ -294,9 +294,8 @@ def table_lines(summary: dict) -> list[str]:
 
 
 def main():
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     for f in dataclasses.fields(Settings):
         parser.add_argument("--" + f.name.replace("_", "-"), type=type(f.default),
                             default=f.default)

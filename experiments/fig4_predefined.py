@@ -20,9 +20,8 @@ from experiments.common import add_setup_flags, band, episode_returns, run_agent
 
 
 def main():
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     add_setup_flags(
         parser, fitness="predefined", num_envs=16, steps=400, chunk=100, hidden=64, seeds=5
     )

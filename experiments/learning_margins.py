@@ -43,9 +43,8 @@ from evojax_morph.spaces import bad_walker as bw
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--measure", choices=("ppo", "a2c"), default="ppo")
     parser.add_argument("--seeds", type=int, default=30)
     parser.add_argument("--train-steps", type=int, default=40_000)
