@@ -26,9 +26,9 @@ docs/benchmarks.md, "Compiling on the second thread breaks Warp's graph capture"
 
 With Warp on several GPUs the run turns the warmup off (`driver.execute`): runs on 2 H100s
 stopped in the greedy rollout after their steps, 4 of 4 with the warmup on. It was not the
-cause: with it off 1 of 2 hung too. The greedy rollout split across the GPUs was, most likely,
-and now runs on one device (`pipeline.make_greedy_rollout`); whether the warmup could come back
-there was not tried. docs/benchmarks.md, "The Warp fitness across GPUs".
+only cause: with it off 1 of 2 hung too, the rollout split across the GPUs, which now runs on
+one device (`pipeline.make_greedy_rollout`; a run so finished). Whether the warmup could come
+back there was not tried. docs/benchmarks.md, "The Warp fitness across GPUs".
 """
 
 from __future__ import annotations
