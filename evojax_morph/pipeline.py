@@ -141,9 +141,11 @@ def make_greedy_rollout(p: Pipeline):
         _, (morphs, params, fitness, actions) = jax.lax.scan(body, evo, keys)
         return morphs, params, fitness, actions
 
-    def on_device(learner, first, key):  # env 0 of `first`; with the rest, on `device`
-        first = jax.tree.map(lambda x: x[:1], first)
-        return jax.device_put(to_host((learner, first, key)), device)
+    env0 = lambda first: jax.tree.map(lambda x: x[:1], first)  # noqa: E731
+
+    def on_device(learner, first, key):  # env 0 of `first`, with the rest, on `device`, by way
+        # of the host: the agent's arrays may span the devices of several processes
+        return jax.device_put(to_host((learner, env0(first), key)), device)
 
     def rollout(learner, first, key) -> Greedy:
         learner, first, key = on_device(learner, first, key)
@@ -166,8 +168,7 @@ def make_greedy_rollout(p: Pipeline):
     def lower(learner, first, key):  # the abstract arguments (`driver.compile_ahead`)
         place = lambda x: jax.ShapeDtypeStruct(  # noqa: E731
             x.shape, x.dtype, sharding=jax.sharding.SingleDeviceSharding(device))
-        first = jax.tree.map(lambda x: jax.ShapeDtypeStruct((1,) + x.shape[1:], x.dtype), first)
-        return run.lower(*jax.tree.map(place, (learner, first, key)))
+        return run.lower(*jax.tree.map(place, (learner, jax.eval_shape(env0, first), key)))
 
     rollout.lower = lower  # its program, for compiling ahead (`warmup`)
     return rollout

@@ -18,8 +18,8 @@ from evojax_morph import run
 assert jax.device_count() == 4
 # the greedy rollout, one body a call, compiles for one device (split, it hung on 2 GPUs)
 from evojax_morph.pipeline import RunConfig, build, make_greedy_rollout
-p = build(RunConfig(space="bad_walker", fitness="predefined", num_envs=4, horizon=2))
 from evojax_morph.sharding import batch_mesh, replicated
+p = build(RunConfig(space="bad_walker", fitness="predefined", num_envs=4, horizon=2))
 everywhere = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=replicated(batch_mesh()))
 state = jax.tree.map(everywhere, jax.eval_shape(p.agent.init, jax.random.PRNGKey(0)))  # as run's
 lowered = make_greedy_rollout(p).lower(state.learner, state.first, jax.random.PRNGKey(1))
