@@ -1,4 +1,4 @@
-"""Planar forward locomotion on a space's padded MJX model.
+"""Forward locomotion on a space's padded MJX model: planar, or in 3D for a free trunk.
 
 The model is an argument of `reset` and `step`, never state on the task, so one task object
 serves every morphology of a space and a batch of models vmaps through it. `reset_worlds` and
@@ -17,7 +17,7 @@ import numpy as np
 from flax import struct
 
 from evojax_morph.engines import Engine
-from evojax_morph.physics import ROOT_JOINTS, mjx
+from evojax_morph.physics import mjx
 from evojax_morph.spaces import Space
 
 
@@ -95,15 +95,18 @@ class EnvState:
 
 
 class Locomotion:
-    """Move the trunk forward (+x) in the x-z plane.
+    """Move the trunk forward (+x): in the x-z plane, or in 3D where the trunk is free.
 
     Observation (6 + 2 x limbs): trunk height, sin and cos of its pitch, its x, z and pitch
-      velocities, then every limb slot's joint angle and velocity (0 for inactive slots).
+      velocities, then every limb slot's joint angle and velocity (0 for inactive slots). For a
+      free trunk (11 + 2 x limbs): its height, orientation (a quaternion) and 6 velocities
+      (linear in the world frame, angular in its own), then the limbs'.
     Action (limbs): one control in [-1, 1] per motor slot; inactive slots are masked to 0.
     Reward: `forward_weight` x the trunk's forward velocity over the control step (m/s), plus
       `healthy_reward`, minus `ctrl_cost` x the sum of squared active controls.
     Termination (the walkers' healthy rules, made relative since bodies differ in size): the
-      trunk pitches beyond `max_tilt` or sinks below `min_height` x its height at reset; or the
+      trunk pitches (tilts its up axis, in 3D) beyond `max_tilt` or sinks below `min_height` x
+      its height at reset; or the
       simulation diverged (state not finite or a velocity beyond `max_speed`), which also
       zeroes that step's reward and observation.
     Truncation: after `episode_length` control steps.
@@ -120,8 +123,13 @@ class Locomotion:
         self.space, self.cfg = space, cfg
         t = space.template
         joint = lambda name: t.joint(name).id
-        self._root_qpos = np.array([t.jnt_qposadr[joint(n)] for n in ROOT_JOINTS])
-        self._root_dof = np.array([t.jnt_dofadr[joint(n)] for n in ROOT_JOINTS])
+        self._free = space.plan.root == "free"
+        root = [joint(n) for n in space.plan.root_joints]
+        if self._free:  # x, y, z, quaternion; 3 linear and 3 angular velocities
+            self._root_qpos = t.jnt_qposadr[root[0]] + np.arange(7)
+            self._root_dof = t.jnt_dofadr[root[0]] + np.arange(6)
+        else:  # x, z, pitch
+            self._root_qpos, self._root_dof = t.jnt_qposadr[root], t.jnt_dofadr[root]
         self._limb_qpos = np.array([t.jnt_qposadr[joint(n)] for n in space.plan.joint_names], int)
         self._limb_dof = np.array([t.jnt_dofadr[joint(n)] for n in space.plan.joint_names], int)
         self._actuator = np.array([t.actuator(n).id for n in space.plan.actuator_names], int)
@@ -133,7 +141,7 @@ class Locomotion:
         self._layout = self if full is None else full  # the full template's
         self.action_size = own if full is None else full.action_size
         self.nv = t.nv
-        self.obs_size = 6 + 2 * self.action_size
+        self.obs_size = (11 if self._free else 6) + 2 * self.action_size
         self.dt = cfg.frame_skip * t.opt.timestep
 
     def action_mask(self, model: mjx.Model) -> jax.Array:
@@ -196,13 +204,20 @@ class Locomotion:
         limb_v = (noise_v[full._limb_dof] * mask)[self._limbs]
         noise = self.cfg.reset_noise
         qvel = qvel.at[self._root_dof].add(noise * root_v).at[self._limb_dof].add(noise * limb_v)
+        if self._free:  # upright at the body's own height (qpos0 is one body's for a batch)
+            start = jnp.array([0, 0, 0, 1, 0, 0, 0], qpos.dtype).at[2].set(body.height)
+            qpos = qpos.at[self._root_qpos].set(start)
         return qpos.at[self._limb_qpos].add(noise * noise_q[self._limbs]), qvel
 
     def _obs(self, body: Body, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
-        _, z, pitch = qpos[self._root_qpos]
+        if self._free:
+            trunk = qpos[self._root_qpos[2:]]  # height and orientation
+        else:
+            _, z, pitch = qpos[self._root_qpos]
+            trunk = jnp.stack([z + body.height, jnp.sin(pitch), jnp.cos(pitch)])
         return jnp.concatenate(
             [
-                jnp.stack([z + body.height, jnp.sin(pitch), jnp.cos(pitch)]),
+                trunk,
                 qvel[self._root_dof],
                 self._to_layout(qpos[self._limb_qpos]) * body.motors,
                 self._to_layout(qvel[self._limb_dof]) * body.motors,
@@ -243,8 +258,14 @@ class Locomotion:
         obs = self._obs(body, qpos, qvel)
         reward = jnp.where(diverged | ~jnp.isfinite(reward), 0.0, reward)
         obs = jnp.where(diverged | ~jnp.isfinite(obs), 0.0, obs)
-        tilted = jnp.abs(qpos[self._root_qpos[2]]) > cfg.max_tilt
-        sunk = qpos[self._root_qpos[1]] + body.height < cfg.min_height * body.height
+        if self._free:  # the trunk's up axis tilted from the vertical by more than max_tilt
+            quat = qpos[self._root_qpos[3:]]
+            _, qx, qy, _ = quat / jnp.linalg.norm(quat)
+            tilted = 1 - 2 * (qx * qx + qy * qy) < jnp.cos(cfg.max_tilt)
+            sunk = qpos[self._root_qpos[2]] < cfg.min_height * body.height
+        else:
+            tilted = jnp.abs(qpos[self._root_qpos[2]]) > cfg.max_tilt
+            sunk = qpos[self._root_qpos[1]] + body.height < cfg.min_height * body.height
         terminated = tilted | sunk | diverged
         steps = steps + 1
         return EnvState(

@@ -12,7 +12,7 @@ import jax
 import mujoco
 import numpy as np
 
-from evojax_morph.physics import DENSITY, BodyPlan, Layout
+from evojax_morph.physics import DENSITY, FREE_ROOT, ROOT_JOINTS, BodyPlan, Layout
 
 
 def write_mjcf(plan: BodyPlan, layout: Layout, name: str, padded: bool) -> str:
@@ -38,8 +38,9 @@ def write_mjcf(plan: BodyPlan, layout: Layout, name: str, padded: bool) -> str:
             if p != parent or not (padded or lay.limb_active[k]):
                 continue
             i = plan.limb_nodes[k]
+            axis = "" if lay.limb_axis is None else f' axis="{fmt(lay.limb_axis[k])}"'
             lines.append(f'{indent}<body name="node{i}" pos="{fmt(lay.limb_pos[k])}">')
-            lines.append(f'{indent}  <joint name="joint{i}"/>')
+            lines.append(f'{indent}  <joint name="joint{i}"{axis}/>')
             lines += geoms(k + 1, indent + "  ")
             lines += limbs(k + 1, indent + "  ")
             lines.append(f"{indent}</body>")
@@ -51,16 +52,15 @@ def write_mjcf(plan: BodyPlan, layout: Layout, name: str, padded: bool) -> str:
         if padded or lay.limb_active[k]
     ]
     lo, hi = plan.joint_range
+    planar = [
+        f'      <joint name="{name}" type="{kind}" axis="{axis}" limited="false" damping="0" '
+        'armature="0"/>'
+        for name, kind, axis in zip(ROOT_JOINTS, ("slide", "slide", "hinge"),
+                                    ("1 0 0", "0 0 1", "0 1 0"))
+    ]
     body = (
         [f'    <body name="node0" pos="{fmt(lay.root_pos)}">']
-        + [
-            '      <joint name="rootx" type="slide" axis="1 0 0" limited="false" damping="0" '
-            'armature="0"/>',
-            '      <joint name="rootz" type="slide" axis="0 0 1" limited="false" damping="0" '
-            'armature="0"/>',
-            '      <joint name="rooty" type="hinge" axis="0 1 0" limited="false" damping="0" '
-            'armature="0"/>',
-        ]
+        + (planar if plan.root == "planar" else [f'      <freejoint name="{FREE_ROOT}"/>'])
         + geoms(0, "      ")
         + limbs(0, "      ")
         + ["    </body>"]
@@ -70,7 +70,8 @@ def write_mjcf(plan: BodyPlan, layout: Layout, name: str, padded: bool) -> str:
             f'<mujoco model="{name}">',
             '  <compiler angle="radian" autolimits="true"/>',
             f'  <option timestep="{plan.timestep:.17g}" iterations="{plan.iterations}" '
-            f'ls_iterations="{plan.ls_iterations}"/>',
+            f'ls_iterations="{plan.ls_iterations}"'
+            + ("" if plan.cone == "pyramidal" else f' cone="{plan.cone}"') + "/>",
             "  <default>",
             f'    <joint type="hinge" axis="0 1 0" range="{lo:.17g} {hi:.17g}" '
             f'damping="{plan.joint_damping:.17g}" armature="{plan.joint_armature:.17g}"/>',

@@ -82,15 +82,19 @@ with contextlib.redirect_stdout(io.StringIO()):  # mjx prints when the optional 
 DENSITY = 1000.0  # kg/m^3, MuJoCo's default geom density
 INACTIVE_MARGIN = -1e3  # m: contacts of an inactive geom never activate
 INACTIVE_ARMATURE = 1.0  # kg m^2: keeps the mass matrix of a massless slot positive definite
-ROOT_JOINTS = ("rootx", "rootz", "rooty")
+ROOT_JOINTS = ("rootx", "rootz", "rooty")  # a planar root: slides along x and z, hinge about y
+FREE_ROOT = "root"  # a free root's joint: 7 qpos (position, quaternion), 6 dofs
 
 
 @dataclasses.dataclass(frozen=True)
 class BodyPlan:
     """The static slots of a space's padded template.
 
-    Body 0 is the root (the trunk, moving in the x-z plane through `ROOT_JOINTS`); bodies 1..L
-    are limbs, each with one actuated hinge about y at its body origin.
+    Body 0 is the root (the trunk); bodies 1..L are limbs, each with one actuated hinge at its
+    body origin. `root` "planar": the trunk moves in the x-z plane through `ROOT_JOINTS` and
+    every hinge turns about y. "free": the trunk is free in 3D (`FREE_ROOT`) and each limb's
+    hinge turns about its own axis (`Layout.limb_axis`); every body frame stays aligned with
+    the trunk's at rest.
     """
 
     geom_names: tuple[str, ...]  # (G,)
@@ -107,8 +111,18 @@ class BodyPlan:
     # Newton solver budget: MJX runs the largest count of a vmapped batch, so keep it small.
     iterations: int = 4
     ls_iterations: int = 8
+    root: str = "planar"  # "planar" or "free"
+    # Friction cone. MJX and MuJoCo Warp align a capsule's pyramidal cone with its axis only
+    # when the axis is within 60 degrees of the floor, MuJoCo C always: a steep limb heading
+    # neither along x nor y then slips differently in each. An elliptic cone is the same in
+    # every frame (and in every engine).
+    cone: str = "pyramidal"
 
     def __post_init__(self):
+        if self.root not in ("planar", "free"):
+            raise ValueError(f"root must be 'planar' or 'free', got {self.root!r}")
+        if self.cone not in ("pyramidal", "elliptic"):
+            raise ValueError(f"cone must be 'pyramidal' or 'elliptic', got {self.cone!r}")
         if not len(self.geom_names) == len(self.geom_body) == len(self.geom_rgba):
             raise ValueError("geom_names, geom_body and geom_rgba differ in length")
         for k, p in enumerate(self.limb_parent):
@@ -118,6 +132,16 @@ class BodyPlan:
     @property
     def num_limbs(self) -> int:
         return len(self.limb_nodes)
+
+    @property
+    def root_joints(self) -> tuple[str, ...]:
+        return ROOT_JOINTS if self.root == "planar" else (FREE_ROOT,)
+
+    @property
+    def specialised_fields(self) -> tuple[str, ...]:
+        """The Model fields `specialise` writes for this plan (with `stat.meaninertia`)."""
+        return SPECIALISED_FIELDS + (("jnt_axis", "qpos0", "qpos_spring") if self.root == "free"
+                                     else ())
 
     @property
     def body_names(self) -> tuple[str, ...]:
@@ -143,6 +167,7 @@ class Layout:
     geom_from: jax.Array  # (G, 3): capsule segment start in its body's frame
     geom_to: jax.Array  # (G, 3): capsule segment end in its body's frame
     geom_radius: jax.Array  # (G,)
+    limb_axis: jax.Array | None = None  # (L, 3): each hinge's axis (a free root); None: y
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,16 +178,22 @@ class TemplateIndex:
     geom: np.ndarray  # (G,)
     limb_dof: np.ndarray  # (L,)
     actuator: np.ndarray  # (L,)
+    limb_joint: np.ndarray  # (L,) joint ids
+    free_dof: int | None  # the free root's first dof; None for a planar root
+    free_qpos: int | None  # the free root's first qpos (its position, then its quaternion)
 
     @classmethod
     def build(cls, plan: BodyPlan, model: mujoco.MjModel) -> TemplateIndex:
         ids = lambda kind, names: np.array([model.__getattribute__(kind)(n).id for n in names])
-        joints = ids("joint", plan.joint_names)
+        joints = ids("joint", plan.joint_names).astype(int)
         return cls(
             body=ids("body", plan.body_names),
             geom=ids("geom", plan.geom_names),
             limb_dof=model.jnt_dofadr[joints] if len(joints) else np.zeros(0, int),
             actuator=ids("actuator", plan.actuator_names),
+            limb_joint=joints,
+            free_dof=None if plan.root == "planar" else int(model.joint(FREE_ROOT).dofadr[0]),
+            free_qpos=None if plan.root == "planar" else int(model.joint(FREE_ROOT).qposadr[0]),
         )
 
 
@@ -179,6 +210,48 @@ def _capsule_frame(start: jax.Array, end: jax.Array):
     zero = jnp.zeros_like(angle)
     quat = jnp.stack([jnp.cos(angle / 2), zero, jnp.sin(angle / 2), zero], -1)
     return 0.5 * (start + end), half, quat, angle
+
+
+def _capsule_frame_3d(start: jax.Array, end: jax.Array):
+    """`_capsule_frame` for a segment anywhere in 3D: centre, half length, the quaternion of
+    the shortest rotation of z onto the segment (as MuJoCo's compiler takes for `fromto`) and
+    its rotation matrix."""
+    axis = end - start
+    length = jnp.linalg.norm(axis, axis=-1, keepdims=True)
+    d = axis / length
+    quat = jnp.concatenate([1 + d[..., 2:], -d[..., 1:2], d[..., :1], jnp.zeros_like(length)], -1)
+    down = 1 + d[..., 2:] < 1e-9  # straight down: half a turn about x
+    quat = jnp.where(down, jnp.array([0.0, 1.0, 0.0, 0.0], d.dtype), quat)
+    quat = quat / jnp.linalg.norm(quat, axis=-1, keepdims=True)
+    return 0.5 * (start + end), 0.5 * length[..., 0], quat, _quat_to_mat(quat)
+
+
+def _quat_to_mat(q: jax.Array) -> jax.Array:
+    """(..., 4) unit quaternions (w, x, y, z) -> (..., 3, 3) rotation matrices."""
+    w, x, y, z = (q[..., i] for i in range(4))
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+    return jnp.stack([jnp.stack(r, -1) for r in rows], -2)
+
+
+def _mat_to_quat(r: jax.Array) -> jax.Array:
+    """(..., 3, 3) rotation matrices -> (..., 4) unit quaternions, from the largest of the four
+    candidate components (Shepperd), so no division is near zero."""
+    e = lambda i, j: r[..., i, j]  # noqa: E731
+    t = [1 + e(0, 0) + e(1, 1) + e(2, 2), 1 + e(0, 0) - e(1, 1) - e(2, 2),
+         1 - e(0, 0) + e(1, 1) - e(2, 2), 1 - e(0, 0) - e(1, 1) + e(2, 2)]
+    zx, yz, xy = e(2, 1) - e(1, 2), e(0, 2) - e(2, 0), e(1, 0) - e(0, 1)
+    sx, sy, sz = e(2, 1) + e(1, 2), e(0, 2) + e(2, 0), e(1, 0) + e(0, 1)
+    candidates = jnp.stack([  # each proportional to (w, x, y, z), the k-th component 4 q_k^2
+        jnp.stack([t[0], zx, yz, xy], -1), jnp.stack([zx, t[1], sz, sy], -1),
+        jnp.stack([yz, sz, t[2], sx], -1), jnp.stack([xy, sy, sx, t[3]], -1)], -2)
+    best = jnp.argmax(jnp.stack(t, -1), -1)
+    q = jnp.take_along_axis(candidates, best[..., None, None], -2)[..., 0, :]
+    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+    return q * jnp.where(q[..., :1] < 0, -1.0, 1.0)
 
 
 def _capsule_inertia(radius: jax.Array, half: jax.Array):
@@ -230,6 +303,26 @@ def _body_inertial(plan: BodyPlan, mass_g, inertia_g, centre_g, angle_g):
     return mass, com, principal, iquat
 
 
+def _body_inertial_3d(plan: BodyPlan, mass_g, inertia_g, centre_g, rot_g):
+    """`_body_inertial` for capsules in any direction: the principal frame by eigh."""
+    num_bodies = 1 + plan.num_limbs
+    owner = np.zeros((num_bodies, len(plan.geom_body)))
+    owner[np.array(plan.geom_body), np.arange(len(plan.geom_body))] = 1.0
+    mass = owner @ mass_g
+    safe = jnp.where(mass > 0, mass, 1.0)
+    com = (owner @ (mass_g[:, None] * centre_g)) / safe[:, None]
+    tensor_g = jnp.einsum("gij,gj,gkj->gik", rot_g, inertia_g, rot_g)
+    offset = centre_g[None] - com[:, None]  # (B, G, 3)
+    shift = mass_g[None, :, None, None] * (
+        jnp.sum(offset**2, -1)[..., None, None] * jnp.eye(3)
+        - offset[..., :, None] * offset[..., None, :]
+    )
+    tensor = jnp.einsum("bg,gij->bij", owner, tensor_g) + jnp.sum(owner[..., None, None] * shift, 1)
+    principal, axes = jnp.linalg.eigh(tensor)  # columns: the principal axes in the body frame
+    axes = axes * jnp.sign(jnp.linalg.det(axes))[:, None, None]  # a rotation, not a reflection
+    return mass, com, jnp.maximum(principal, 0.0), _mat_to_quat(axes)
+
+
 def _put(array: jax.Array, index, value) -> jax.Array:
     """`array.at[index].set(value)`, keeping the dtype of `array`."""
     return array.at[index].set(jnp.asarray(value).astype(array.dtype))
@@ -250,7 +343,9 @@ def specialise(
     limb_on = layout.limb_active.astype(dtype)
 
     # GEOMS
-    centre, half, quat, angle = _capsule_frame(layout.geom_from, layout.geom_to)
+    free = plan.root == "free"
+    frame = _capsule_frame_3d if free else _capsule_frame
+    centre, half, quat, turn = frame(layout.geom_from, layout.geom_to)  # turn: angle or matrix
     mass_g, inertia_g = _capsule_inertia(layout.geom_radius, half)
     mass_g = mass_g * geom_on
     inertia_g = inertia_g * geom_on[:, None]
@@ -261,7 +356,8 @@ def specialise(
     margin = _put(template.geom_margin, g, margin)
 
     # BODIES
-    mass, com, principal, iquat = _body_inertial(plan, mass_g, inertia_g, centre, angle)
+    inertial = _body_inertial_3d if free else _body_inertial
+    mass, com, principal, iquat = inertial(plan, mass_g, inertia_g, centre, turn)
     b = index.body
     body_pos = _put(_put(template.body_pos, b[0], layout.root_pos), b[1:], layout.limb_pos)
     subtree = mass
@@ -289,6 +385,14 @@ def specialise(
         dof_armature=armature,
         actuator_gear=gear,
     )
+    if free:  # each hinge's axis; a free joint's qpos0 is where its body starts (the compiler's)
+        axis = layout.limb_axis / jnp.linalg.norm(layout.limb_axis, axis=-1, keepdims=True)
+        start = np.arange(index.free_qpos, index.free_qpos + 3)
+        model = model.replace(
+            jnt_axis=_put(template.jnt_axis, index.limb_joint, axis),
+            qpos0=_put(template.qpos0, start, layout.root_pos),
+            qpos_spring=_put(template.qpos_spring, start, layout.root_pos),
+        )
     return _set_constants(model, index, limb_on)
 
 
@@ -316,7 +420,9 @@ SPECIALISED_FIELDS = (
 )
 
 
-def flat_models(models: mjx.Model, envs: int) -> tuple[mjx.Model, mjx.Model]:
+def flat_models(
+    models: mjx.Model, envs: int, fields: tuple[str, ...] = SPECIALISED_FIELDS
+) -> tuple[mjx.Model, mjx.Model]:
     """B specialised models as one model per world of a flat batch of B x E worlds.
 
     World `w = b * envs + e` is env e of body b. Only the fields `specialise` writes are
@@ -326,21 +432,22 @@ def flat_models(models: mjx.Model, envs: int) -> tuple[mjx.Model, mjx.Model]:
     Args:
       models: a batch of `specialise`d models (JAX impl), every leaf with a leading (B,) axis.
       envs: E, worlds per body.
+      fields: the fields `specialise` wrote (`BodyPlan.specialised_fields`).
 
     Returns:
-      `(model, in_axes)`: the model, fields of `SPECIALISED_FIELDS` and `stat.meaninertia`
+      `(model, in_axes)`: the model, `fields` and `stat.meaninertia`
       with a leading (B * E,) axis and the rest unbatched, and the matching `in_axes` tree
       (0 for the repeated leaves, None for the shared ones).
     """
     repeat = lambda x: jnp.repeat(x, envs, axis=0)
     shared = jax.tree.map(lambda x: x[0], models)
     flat = shared.replace(
-        **{name: repeat(getattr(models, name)) for name in SPECIALISED_FIELDS},
+        **{name: repeat(getattr(models, name)) for name in fields},
         stat=shared.stat.replace(meaninertia=repeat(models.stat.meaninertia)),
     )
     axes = jax.tree.map(lambda _: None, shared)
     axes = axes.replace(
-        **{name: 0 for name in SPECIALISED_FIELDS}, stat=axes.stat.replace(meaninertia=0)
+        **{name: 0 for name in fields}, stat=axes.stat.replace(meaninertia=0)
     )
     return flat, axes
 
@@ -364,8 +471,13 @@ def _set_constants(model: mjx.Model, index: TemplateIndex, limb_on: jax.Array) -
     body_ids = np.arange(1, model.nbody)
     body_invweight0 = _put(model.body_invweight0, body_ids, jax.vmap(invweight)(body_ids))
 
-    # dof_invweight0: diagonal of M^-1 (every dof here is a hinge or slide); dof_M0: diagonal of M.
+    # dof_invweight0: diagonal of M^-1 for a hinge or slide; a free joint's translations share
+    # the mean of their three, and its rotations theirs. dof_M0: diagonal of M.
     dof_invweight0 = jnp.diagonal(inv_m)
+    if index.free_dof is not None:
+        for first in (index.free_dof, index.free_dof + 3):
+            part = slice(first, first + 3)
+            dof_invweight0 = dof_invweight0.at[part].set(jnp.mean(dof_invweight0[part]))
     dof_m0 = jnp.diagonal(mass_matrix)
 
     # actuator_acc0: norm of M^-1 times the actuator's moment (its gear on its dof).

@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
-from evojax_morph.physics import MUJOCO_WARP, SPECIALISED_FIELDS, flat_models, mjx
+from evojax_morph.physics import MUJOCO_WARP, flat_models, mjx
 from evojax_morph.spaces import Space
 
 INSTALL_HINT = "pip install 'evojax_morph[warp]'"
@@ -230,7 +230,7 @@ def to_warp(
         the CPU).
 
     Returns:
-      `(model, data)`: a Warp-impl `mjx.Model` whose `SPECIALISED_FIELDS` (but `dof_M0`) and
+      `(model, data)`: a Warp-impl `mjx.Model` whose `plan.specialised_fields` (but `dof_M0`) and
       `geom_aabb` have a leading (N,) float32 axis, the rest the template's; and `mjx.Data` of
       the template at qpos0 with a leading (N,) axis on its per-world fields.
 
@@ -244,15 +244,16 @@ def to_warp(
 
 
 def world_model(space: Space, models: mjx.Model, envs: int, graph_mode=None) -> mjx.Model:
-    """The Warp model of `to_warp` alone: B bodies' `SPECIALISED_FIELDS` (but `dof_M0`) and
+    """The Warp model of `to_warp` alone: B bodies' `plan.specialised_fields` (but `dof_M0`) and
     `geom_aabb` repeated per world, a leading (B x envs,) axis on each; jittable."""
     _require()
     template = space.template
     base = put_model(template, graph_mode)
-    flat, _ = flat_models(models, envs)  # the fields specialise writes, one row per world
+    written = space.plan.specialised_fields
+    flat, _ = flat_models(models, envs, written)  # the fields specialise writes, one per world
     fields = {
         n: jnp.asarray(getattr(flat, n), jnp.float32)
-        for n in SPECIALISED_FIELDS
+        for n in written
         if n not in _NOT_IN_WARP
     }
     fields["geom_aabb"] = _capsule_aabb(template, fields["geom_size"])
@@ -293,13 +294,12 @@ def buffers(space: Space) -> tuple[int, int]:
     silently (`put_model` turns the warning off). Only capsule-floor pairs collide, a capsule on
     a plane touches it at 2 points at most, an inactive capsule never does (its margin, see
     `physics`), and a body has at most one active capsule per node: so 2 x max_nodes contacts.
-    Each takes 4 rows (pyramidal cone, condim 3); each limited joint 1 more. Other constraint
-    kinds are refused rather than counted.
+    Each takes 4 rows (pyramidal cone, condim 3; 3 in an elliptic cone); each limited joint 1
+    more. Other constraint kinds are refused rather than counted.
     """
     t = space.template
     if (
-        t.opt.cone != mujoco.mjtCone.mjCONE_PYRAMIDAL
-        or set(t.geom_condim.tolist()) != {3}
+        set(t.geom_condim.tolist()) != {3}
         or t.neq
         or t.npair
         or t.ntendon
@@ -309,7 +309,8 @@ def buffers(space: Space) -> tuple[int, int]:
         raise ValueError(f"{space.name}: buffers() counts capsule-floor contacts and limits only")
     capsules = int((t.geom_type == mujoco.mjtGeom.mjGEOM_CAPSULE).sum())
     contacts = 2 * min(space.max_nodes, capsules)
-    return contacts, 4 * contacts + int(t.jnt_limited.sum())
+    per_contact = 4 if t.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL else 3  # elliptic: 3
+    return contacts, per_contact * contacts + int(t.jnt_limited.sum())
 
 
 def make_worlds(

@@ -150,7 +150,7 @@ def bench_space(
             data = jax.vmap(lambda model: broadcast_data(model, 1, envs)[0])(models)
             nested = make_rollout(steps, batched_models=True)
             t_nested = time_rollout(nested, models, data, repeats)
-            flat, axes = physics.flat_models(models, envs)
+            flat, axes = physics.flat_models(models, envs, space.plan.specialised_fields)
             flat_data = broadcast_data(padded, 1, worlds)[0]
             t_flat = time_rollout(make_flat_rollout(steps, axes), flat, flat_data, repeats)
         else:
@@ -209,7 +209,8 @@ def batch_padding(space, kind, morphs, envs, steps, repeats, graph_mode, naconma
             return time_rollout(shared, model, broadcast_data(model, batch, envs), repeats)
 
         def padded(sp, ms):
-            flat, axes = physics.flat_models(jax.vmap(sp.mjx_model)(ms), envs)
+            flat, axes = physics.flat_models(jax.vmap(sp.mjx_model)(ms), envs,
+                                             sp.plan.specialised_fields)
             data = broadcast_data(sp.mjx_template(), 1, ms.active.shape[0] * envs)[0]
             return time_rollout(make_flat_rollout(steps, axes), flat, data, repeats)
     else:

@@ -31,7 +31,7 @@ def reachable(space, max_depth=10):
 
 
 def test_registry():
-    assert em.list_spaces() == ["bad_walker", "constructor", "length_walker"]
+    assert em.list_spaces() == ["bad_walker", "constructor", "crawler", "length_walker"]
     with pytest.raises(ValueError, match="unknown space 'nope'.*bad_walker"):
         em.make_space("nope")
 

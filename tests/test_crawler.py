@@ -1,0 +1,105 @@
+"""The 3D Crawler space: its mutations, its count of bodies, and its task on a free trunk."""
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import evojax_morph as em
+from evojax_morph.locomotion import Locomotion, make_task
+from evojax_morph.spaces import crawler as cr
+
+
+@pytest.fixture(scope="module")
+def space():
+    return em.make_space("crawler")
+
+
+def by_polynomial(horizon):
+    """Bodies first reached after 0..horizon mutations, counted another way: a limb is 1
+    mutation, 2 (its length or its axis changed) or 3 (both), in 1, 3 and 2 ways; a site holds
+    0 to 3 limbs; the 6 sites are independent. The coefficients of (sum_k p^k)^6."""
+    limb = np.array([0, 1, 3, 2])
+    site, power = np.array([1]), np.array([1])
+    for _ in range(cr.DEPTH):
+        power = np.convolve(power, limb)
+        site = np.pad(site, (0, len(power) - len(site))) + power
+    body = np.array([1])
+    for _ in range(cr.NUM_SITES):
+        body = np.convolve(body, site)
+    return body[: horizon + 1].tolist()
+
+
+def test_reachable_counts_are_the_canonical_names(space):
+    """`reachable_counts` (a numpy BFS over coded bodies) against `enumerate_bodies` (BFS over
+    `mutate` by `canonical` name) to depth 3, and against the polynomial to depth 6."""
+    _, depths = space.enumerate_bodies(3)
+    assert cr.reachable_counts(3) == np.bincount(depths).tolist() == [1, 6, 39, 194]
+    assert cr.reachable_counts(6) == by_polynomial(6)
+
+
+@pytest.mark.slow
+def test_a_million_bodies_within_the_horizon():
+    """The README's count: 2,754,725 distinct bodies within 10 mutations (12 s)."""
+    counts = cr.reachable_counts(10)
+    assert counts == by_polynomial(10) and sum(counts) == 2_754_725
+
+
+def test_mutations(space):
+    m = space.mutate(space.initial(), 0, 3)  # a limb at the front right: slot 10
+    assert space.format(m).splitlines()[1] == "└── 10: limb @ front_right (length=0.3, axis=0)"
+    m = space.mutate(space.mutate(m, 10, cr.EXTEND), 11, cr.EXTEND)  # a chain of 3
+    assert np.asarray(m.active)[[10, 11, 12]].all()
+    assert np.asarray(m.attrs)[11:13, 1].tolist() == [1, 1]  # a knee lifts
+    mask = np.asarray(space.action_mask(m))
+    assert not mask[12, cr.EXTEND] and not mask[10, cr.REMOVE] and mask[12, cr.REMOVE]
+    assert mask[0, cr.NOOP] and not mask[10, cr.NOOP] and not mask[0, 3]
+    with pytest.raises(ValueError, match="'remove' is not allowed on node 10"):
+        space.mutate(m, 10, cr.REMOVE)
+    short = space.mutate(m, 11, cr.SHORTER)
+    assert float(short.attrs[11, 0]) == pytest.approx(0.2)
+    assert not np.asarray(space.action_mask(short))[11, cr.SHORTER]
+    flipped = space.mutate(m, 10, cr.FLIP)
+    assert float(flipped.attrs[10, 1]) == 1.0
+    chex.assert_trees_all_equal(space.mutate(m, 0, cr.NOOP), m)
+    chex.assert_trees_all_equal(jax.jit(space.mutate)(m, 10, cr.REMOVE), m)  # masked: no-op
+    # removing the chain leaf by leaf gives back m0, slot for slot
+    gone = space.mutate(space.mutate(space.mutate(m, 12, cr.REMOVE), 11, cr.REMOVE), 10, cr.REMOVE)
+    chex.assert_trees_all_equal(gone, space.initial())
+    assert float(space.predefined_fitness(m)) == 30.0  # 3 limbs, no mirrored pair
+
+
+def test_hinge_axes_are_across_their_limbs(space):
+    """Each slot's swing and lift axes are unit vectors perpendicular to the limb and to each
+    other; the layout gives every limb its own."""
+    for axes in (cr.SLOT_SWING, cr.SLOT_LIFT):
+        np.testing.assert_allclose(np.linalg.norm(axes, axis=1), 1.0, atol=1e-12)
+        np.testing.assert_allclose(np.sum(axes * cr.SLOT_DIR, 1), 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.sum(cr.SLOT_SWING * cr.SLOT_LIFT, 1), 0.0, atol=1e-12)
+    m = space.mutate(space.mutate(space.initial(), 0, 0), 1, cr.FLIP)
+    np.testing.assert_allclose(space.layout(m).limb_axis[0], cr.SLOT_LIFT[0], atol=1e-6)
+
+
+def test_the_3d_task_on_a_free_trunk(space):
+    """A body starts upright at its own height, whatever qpos0 its batch was made from; the
+    episode ends when the trunk's up axis tilts past max_tilt or it sinks."""
+    task = Locomotion(space, make_task("walk"))
+    assert task.obs_size == 11 + 2 * 18
+    m = space.mutate(space.mutate(space.initial(), 0, 1), 0, 4)  # middle legs
+    model = jax.jit(space.mjx_model)(m)
+    body = task.body(model)
+    data = em.physics.mjx.make_data(jax.jit(space.mjx_model)(space.initial()))  # another body's
+    qpos, qvel = task._perturb(jax.random.PRNGKey(0), body, data.qpos, data.qvel)
+    np.testing.assert_allclose(qpos[:7], [0, 0, float(body.height), 1, 0, 0, 0], atol=1e-7)
+    obs = task._obs(body, qpos, qvel)
+    assert obs.shape == (task.obs_size,) and float(obs[0]) == pytest.approx(float(body.height))
+
+    def ends(turn, height):
+        quat = jnp.array([np.cos(turn / 2), np.sin(turn / 2), 0, 0])  # about x
+        q = qpos.at[2].set(height).at[3:7].set(quat)
+        return bool(task._outcome(body, qpos, 0, jnp.zeros(task.action_size), q, qvel).terminated)
+
+    h = float(body.height)
+    assert not ends(0.9, h) and ends(1.1, h)  # max_tilt 1 rad, about any horizontal axis
+    assert not ends(0.0, 0.75 * h) and ends(0.0, 0.65 * h)  # min_height 0.7
