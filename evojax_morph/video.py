@@ -26,7 +26,6 @@ from evojax_morph import controllers, ppo
 from evojax_morph.controllers import SavedController
 from evojax_morph.locomotion import Locomotion
 from evojax_morph.opengl import choose_gl
-from evojax_morph.physics import ROOT_JOINTS
 
 BACKENDS = ("auto", "mujoco", "matplotlib")
 
@@ -147,12 +146,14 @@ class _Scene:
         self.model = mujoco.MjModel.from_xml_string(xml)
         self.data = mujoco.MjData(self.model)
         template = saved.space.template
-        names = ROOT_JOINTS + tuple(
-            self.model.joint(j).name for j in range(self.model.njnt)
-            if self.model.joint(j).name not in ROOT_JOINTS
-        )
-        self._to = np.array([self.model.jnt_qposadr[self.model.joint(n).id] for n in names])
-        self._from = np.array([template.jnt_qposadr[template.joint(n).id] for n in names])
+        width = {int(mujoco.mjtJoint.mjJNT_FREE): 7, int(mujoco.mjtJoint.mjJNT_BALL): 4}
+        to, source = [], []  # every qpos of every joint of the export, and the template's
+        for j in range(self.model.njnt):
+            n = width.get(int(self.model.jnt_type[j]), 1)
+            to += range(self.model.jnt_qposadr[j], self.model.jnt_qposadr[j] + n)
+            start = template.jnt_qposadr[template.joint(self.model.joint(j).name).id]
+            source += range(start, start + n)
+        self._to, self._from = np.array(to), np.array(source)
 
     def pose(self, qpos: np.ndarray) -> mujoco.MjData:
         self.data.qpos[self._to] = qpos[self._from]
