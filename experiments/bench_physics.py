@@ -111,19 +111,9 @@ def make_space(spec: str):
     return em.make_space(name, **{k: int(v) for k, v in kwargs.items()})
 
 
-def bench_space(
-    spec: str,
-    physics_kinds: list[str],
-    batch: int,
-    envs: int,
-    steps: int,
-    repeats: int,
-    seed: int,
-    graph_mode=None,
-    naconmax: int | None = None,
-    njmax: int | None = None,
-    ideal_bodies: int = 0,
-) -> list[dict]:
+def bench_space(spec: str, physics_kinds: list[str], batch: int, envs: int, steps: int,
+                repeats: int, seed: int, graph_mode=None, naconmax: int | None = None,
+                njmax: int | None = None, ideal_bodies: int = 0) -> list[dict]:
     """One row per physics kind of `physics_kinds` ("jax", "warp") for the space `spec`."""
     space = make_space(spec)
     name = space.name

@@ -19,6 +19,7 @@ A body is "confirmed" by `em.confirm`: --confirm-controllers controllers trained
   python -m experiments.reproduce --stages fig6_h20 fig6_h100 fig5 --physics warp --budget 480
   python -m experiments.reproduce --draw --data docs/figures/reproduce --out docs/figures
   python -m experiments.reproduce --task walk --stages compare --physics warp   # walking task
+  python -m experiments.reproduce --task walk --stages compare --physics warp --space crawler
   python -m experiments.reproduce --toy --stages all --data /tmp/r --out /tmp/r   # CPU smoke
 """
 
@@ -67,10 +68,9 @@ GROUPS = {  # at least the evaluations per run and seeds the issue asks for
     **{f"compare_{a}": Group("constructor", a, 128, 160)  # 20,480
        for a in ("a2c", "ddqn", "evolution", "random")},
 }
-# The comparison on the walking task (issue 44): 10 seeds a method at 50,000 PPO steps, where
-# the walking task separates Constructor bodies (docs/results.md, "Bodies that walk"), so
-# 1,024 evaluations a run (32 evolutions x 4 episodes of 8 mutations) to fit 40 runs into about
-# 30 GPU-minutes. Drawn as compare_constructor_walk.
+# The walking task's comparison (issue 44): 10 seeds a method at 50,000 PPO steps, where it
+# separates Constructor bodies (results.md, "Bodies that walk"); 1,024 evaluations a run (32
+# evolutions x 4 episodes of 8) fit 40 runs into 30 GPU-minutes. Drawn as compare_constructor_walk.
 WALK_TRAIN_STEPS, WALK_DATA = 50_000, Path("docs/figures/reproduce_walk")
 WALK_GROUPS = {f"compare_{a}": Group("constructor", a, 32, 32, seeds=10, chunk=4)
                for a in ("a2c", "ddqn", "evolution", "random")}
@@ -182,8 +182,12 @@ def unroll(name: str, of: str, args) -> bool:
 
 
 def groups(args) -> dict[str, Group]:
-    """The run groups of --task: the source's, or on the walking task its comparison's."""
+    """The run groups of --task: the source's, or the walking task's comparison; on another
+    --space the comparison runs there, 5 seeds of 4 episodes (the Crawler's, issue 47)."""
     chosen = {**GROUPS, **WALK_GROUPS} if args.task == "walk" else GROUPS
+    other = dict(space=args.space, seeds=5, steps=4 * em.make_space(args.space).default_horizon)
+    chosen = {k: dataclasses.replace(g, **other) if k.startswith("compare_") and args.space !=
+              "constructor" else g for k, g in chosen.items()}
     return {k: toy(g) if args.toy else g for k, g in chosen.items()}
 
 
@@ -334,10 +338,10 @@ def draw(data: Path, out: Path) -> None:
                        "its confirmed mean (right)", fontsize=10)
         ax_g.set(ylabel="fitness of the returned body")
         first = next(iter(runs.values()))
-        task = first.get("task", "distance")
-        fig.suptitle(f"Constructor, {task} task, {first['evaluations_per_run']:,} evaluations "
+        task, space = first.get("task", "distance"), first["space"]
+        fig.suptitle(f"{space.title()}, {task} task, {first['evaluations_per_run']:,} evaluations "
                      "a run: RL against evolution and random walks", fontsize=10)
-        name = "compare_constructor" + ("" if task == "distance" else f"_{task}")
+        name = f"compare_{space}" + ("" if task == "distance" else f"_{task}")
         save(fig, out, name, {"task": task, "effects": effects, "runs": runs})
 
 
@@ -355,8 +359,9 @@ def main(argv: list[str] | None = None) -> int:
     add("--confirm-controllers", type=int, default=32, help="controllers confirming a body")
     add("--budget", type=float, default=480,
         help="seconds: start no chunk after this (a device call's limit, less a margin)")
+    add("--space", default="constructor", help="the comparison's space (crawler: issue 47)")
     add("--data", type=Path, help="the data files (docs/figures/reproduce, and "
-        "reproduce_walk for the walking task)")
+        "reproduce_walk for the walking task, reproduce_SPACE on another space)")
     add("--out", type=Path, default=Path("docs/figures"), help="the figures")
     add("--toy", action="store_true", help="the CPU smoke's size (and 320 PPO steps)")
     add("--draw", action="store_true", help="draw the figures from the data files")
@@ -366,7 +371,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown stages {unknown}; choose from all, {', '.join(STAGES)}")
     walk = args.task == "walk"
     args.train_steps = args.train_steps or (WALK_TRAIN_STEPS if walk else TRAIN_STEPS)
-    args.data = args.data or (WALK_DATA if walk else Path("docs/figures/reproduce"))
+    default = WALK_DATA if walk else Path("docs/figures/reproduce")
+    args.data = args.data or (default if args.space == "constructor" else
+                              Path(f"docs/figures/reproduce_{args.space}"))
     if args.toy:
         args.train_steps, args.confirm_controllers = 320, 2
     jax.config.update("jax_default_matmul_precision", "highest")
