@@ -338,7 +338,7 @@ def draw(data: Path, out: Path) -> None:
                        "its confirmed mean (right)", fontsize=10)
         ax_g.set(ylabel="fitness of the returned body")
         first = next(iter(runs.values()))
-        task, space = first.get("task", "distance"), first["space"]
+        task, space = first.get("task", "distance"), first.get("space", "constructor")
         fig.suptitle(f"{space.title()}, {task} task, {first['evaluations_per_run']:,} evaluations "
                      "a run: RL against evolution and random walks", fontsize=10)
         name = f"compare_{space}" + ("" if task == "distance" else f"_{task}")

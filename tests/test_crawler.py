@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import evojax_morph as em
-from evojax_morph.locomotion import Locomotion, make_task
+from evojax_morph.locomotion import Body, Locomotion, make_task
 from evojax_morph.spaces import crawler as cr
 
 
@@ -87,10 +87,10 @@ def test_the_3d_task_on_a_free_trunk(space):
     task = Locomotion(space, make_task("walk"))
     assert task.obs_size == 11 + 2 * 18
     m = space.mutate(space.mutate(space.initial(), 0, 1), 0, 4)  # middle legs
-    model = jax.jit(space.mjx_model)(m)
-    body = task.body(model)
-    data = em.physics.mjx.make_data(jax.jit(space.mjx_model)(space.initial()))  # another body's
-    qpos, qvel = task._perturb(jax.random.PRNGKey(0), body, data.qpos, data.qvel)
+    body = Body(motors=m.active[1:], height=space.layout(m).root_pos[2])  # task.body's, uncompiled
+    template = space.template  # qpos0 of the template's tallest body, not this one's
+    qpos, qvel = task._perturb(jax.random.PRNGKey(0), body, jnp.asarray(template.qpos0),
+                               jnp.zeros(template.nv))
     np.testing.assert_allclose(qpos[:7], [0, 0, float(body.height), 1, 0, 0, 0], atol=1e-7)
     obs = task._obs(body, qpos, qvel)
     assert obs.shape == (task.obs_size,) and float(obs[0]) == pytest.approx(float(body.height))

@@ -93,11 +93,18 @@ def test_an_unroll_is_rebuilt_from_its_recorded_mutations():
 def test_the_walking_comparison_gives_every_method_10_seeds_of_equal_evaluations():
     """The walking task's comparison (issue 44): at least 10 seeds a method, the same
     evaluations a run for every method, whole episodes of the Constructor's horizon."""
-    walk = reproduce.groups(argparse.Namespace(task="walk", toy=False))
+    walk = reproduce.groups(argparse.Namespace(task="walk", toy=False, space="constructor"))
     compare = [g for name, g in walk.items() if name.startswith("compare_")]
     assert len(compare) == 4 and all(g.seeds >= 10 for g in compare)
     assert len({g.num_envs * g.steps for g in compare}) == 1
     horizon = make_space("constructor").horizon
     assert all(g.steps % horizon == 0 and g.space == "constructor" for g in compare)
     # the source's groups stay as they were under the distance task
-    assert reproduce.groups(argparse.Namespace(task="distance", toy=False)) == reproduce.GROUPS
+    source = argparse.Namespace(task="distance", toy=False, space="constructor")
+    assert reproduce.groups(source) == reproduce.GROUPS
+    # on the Crawler (issue 47) the comparison alone moves there: 5 seeds of 4 whole episodes
+    crawler = reproduce.groups(argparse.Namespace(task="walk", toy=False, space="crawler"))
+    moved = [g for name, g in crawler.items() if name.startswith("compare_")]
+    assert len(moved) == 4 and all(g.space == "crawler" and g.seeds == 5 for g in moved)
+    assert all(g.steps == 4 * make_space("crawler").default_horizon for g in moved)
+    assert crawler["fig8"] == reproduce.GROUPS["fig8"]
