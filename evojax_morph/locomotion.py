@@ -106,9 +106,8 @@ class Locomotion:
       `healthy_reward`, minus `ctrl_cost` x the sum of squared active controls.
     Termination (the walkers' healthy rules, made relative since bodies differ in size): the
       trunk pitches (tilts its up axis, in 3D) beyond `max_tilt` or sinks below `min_height` x
-      its height at reset; or the
-      simulation diverged (state not finite or a velocity beyond `max_speed`), which also
-      zeroes that step's reward and observation.
+      its height at reset; or the simulation diverged (state not finite or a velocity beyond
+      `max_speed`), which also zeroes that step's reward and observation.
     Truncation: after `episode_length` control steps.
 
     `limbs`, `full`: for a size class (`Space.size_classes`), the full template's limb slot of

@@ -1,4 +1,5 @@
-"""Planar capsule bodies: one padded MuJoCo template per space, specialised per morphology in JAX.
+"""Capsule bodies, planar or free in 3D: one padded MuJoCo template per space, specialised per
+morphology in JAX.
 
 A space describes its bodies in two parts:
 
