@@ -183,9 +183,10 @@ def unroll(name: str, of: str, args) -> bool:
 
 def groups(args) -> dict[str, Group]:
     """The run groups of --task: the source's, or the walking task's comparison; on another
-    --space the comparison runs there, 5 seeds of 4 episodes (the Crawler's, issue 47)."""
+    --space the comparison runs there, 5 seeds of --episodes episodes (the Crawler's, issue 47)."""
     chosen = {**GROUPS, **WALK_GROUPS} if args.task == "walk" else GROUPS
-    other = dict(space=args.space, seeds=5, steps=4 * em.make_space(args.space).default_horizon)
+    horizon = em.make_space(args.space).default_horizon
+    other = dict(space=args.space, seeds=5, steps=args.episodes * horizon)
     chosen = {k: dataclasses.replace(g, **other) if k.startswith("compare_") and args.space !=
               "constructor" else g for k, g in chosen.items()}
     return {k: toy(g) if args.toy else g for k, g in chosen.items()}
@@ -339,9 +340,13 @@ def draw(data: Path, out: Path) -> None:
         ax_g.set(ylabel="fitness of the returned body")
         first = next(iter(runs.values()))
         task, space = first.get("task", "distance"), first.get("space", "constructor")
+        default = WALK_TRAIN_STEPS if task == "walk" else TRAIN_STEPS
+        steps = first.get("fitness", {}).get("train_steps", default)
         fig.suptitle(f"{space.title()}, {task} task, {first['evaluations_per_run']:,} evaluations "
-                     "a run: RL against evolution and random walks", fontsize=10)
+                     f"a run of {steps:,} PPO steps: RL against evolution and random walks",
+                     fontsize=10)
         name = f"compare_{space}" + ("" if task == "distance" else f"_{task}")
+        name += "" if steps == default else f"_{steps // 1000}k"  # another budget than the task's
         save(fig, out, name, {"task": task, "effects": effects, "runs": runs})
 
 
@@ -360,6 +365,7 @@ def main(argv: list[str] | None = None) -> int:
     add("--budget", type=float, default=480,
         help="seconds: start no chunk after this (a device call's limit, less a margin)")
     add("--space", default="constructor", help="the comparison's space (crawler: issue 47)")
+    add("--episodes", type=int, default=4, help="on another --space: episodes a run")
     add("--data", type=Path, help="the data files (docs/figures/reproduce, and "
         "reproduce_walk for the walking task, reproduce_SPACE on another space)")
     add("--out", type=Path, default=Path("docs/figures"), help="the figures")

@@ -1,5 +1,8 @@
 """The 3D Crawler space: its mutations, its count of bodies, and its task on a free trunk."""
 
+import json
+from pathlib import Path
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -103,3 +106,18 @@ def test_the_3d_task_on_a_free_trunk(space):
     h = float(body.height)
     assert not ends(0.9, h) and ends(1.1, h)  # max_tilt 1 rad, about any horizontal axis
     assert not ends(0.0, 0.75 * h) and ends(0.0, 0.65 * h)  # min_height 0.7
+
+
+def test_the_budget_studys_bodies_are_those_its_data_name(space):
+    """experiments/crawler_budget.py grows its bodies by mutations from m0: they are the bodies
+    its data file names, the first is the actor-critic's best returned body of the 20,000-step
+    comparison, and each is within the horizon (one mutation a limb)."""
+    from experiments import crawler_budget
+
+    data = json.loads(Path("docs/figures/crawler_budget.json").read_text())
+    bodies = [crawler_budget.body(space, sites, limbs) for _, sites, limbs in crawler_budget.BODIES]
+    assert [space.canonical(m) for m in bodies] == [b["body"] for b in data["bodies"]]
+    a2c = json.loads(Path("docs/figures/reproduce_crawler/compare_a2c.json").read_text())
+    assert max(a2c["returned"], key=lambda r: r["mean"])["body"] == space.canonical(bodies[0])
+    limbs = [int(np.sum(m.active)) - 1 for m in bodies]
+    assert limbs == [4, 4, 6, 8] and max(limbs) <= space.default_horizon

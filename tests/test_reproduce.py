@@ -62,6 +62,12 @@ def test_the_comparison_draws_each_agent_and_each_difference_with_its_interval(t
             {"evaluations_per_run": 8, "returned": returned, "returned_draw": [100.0] * 3}))
     reproduce.draw(tmp_path, tmp_path / "fig")
     assert (tmp_path / "fig" / "compare_constructor.png").exists()
+    # data of another budget than the task's are drawn under a name that says it
+    for path in tmp_path.glob("compare_*.json"):
+        path.write_text(json.dumps({**json.loads(path.read_text()),
+                                    "fitness": {"train_steps": 20_000}}))
+    reproduce.draw(tmp_path, tmp_path / "fig")
+    assert (tmp_path / "fig" / "compare_constructor_20k.png").exists()
     summary = json.loads((tmp_path / "fig" / "compare_constructor.json").read_text())
     agents, differences = summary["effects"]["agents"], summary["effects"]["differences"]
     assert set(summary["runs"]) == set(confirmed) == set(agents)
@@ -93,18 +99,21 @@ def test_an_unroll_is_rebuilt_from_its_recorded_mutations():
 def test_the_walking_comparison_gives_every_method_10_seeds_of_equal_evaluations():
     """The walking task's comparison (issue 44): at least 10 seeds a method, the same
     evaluations a run for every method, whole episodes of the Constructor's horizon."""
-    walk = reproduce.groups(argparse.Namespace(task="walk", toy=False, space="constructor"))
+    walk = reproduce.groups(argparse.Namespace(task="walk", toy=False, space="constructor",
+                                               episodes=2))
     compare = [g for name, g in walk.items() if name.startswith("compare_")]
     assert len(compare) == 4 and all(g.seeds >= 10 for g in compare)
     assert len({g.num_envs * g.steps for g in compare}) == 1
     horizon = make_space("constructor").horizon
     assert all(g.steps % horizon == 0 and g.space == "constructor" for g in compare)
     # the source's groups stay as they were under the distance task
-    source = argparse.Namespace(task="distance", toy=False, space="constructor")
+    source = argparse.Namespace(task="distance", toy=False, space="constructor", episodes=2)
     assert reproduce.groups(source) == reproduce.GROUPS
-    # on the Crawler (issue 47) the comparison alone moves there: 5 seeds of 4 whole episodes
-    crawler = reproduce.groups(argparse.Namespace(task="walk", toy=False, space="crawler"))
+    # on the Crawler (issue 47) the comparison alone moves there: 5 seeds of --episodes whole
+    # episodes
+    crawler = reproduce.groups(argparse.Namespace(task="walk", toy=False, space="crawler",
+                                                  episodes=2))
     moved = [g for name, g in crawler.items() if name.startswith("compare_")]
     assert len(moved) == 4 and all(g.space == "crawler" and g.seeds == 5 for g in moved)
-    assert all(g.steps == 4 * make_space("crawler").default_horizon for g in moved)
+    assert all(g.steps == 2 * make_space("crawler").default_horizon for g in moved)
     assert crawler["fig8"] == reproduce.GROUPS["fig8"]
