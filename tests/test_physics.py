@@ -14,7 +14,8 @@ from evojax_morph.physics import mjx
 from evojax_morph.spaces import bad_walker as bw
 
 # The documented equivalence: 50 bodies x 300 steps per space (slow: minutes of float64
-# stepping on 2 cores); the default set checks a sample of it, 12 bodies x 100 steps.
+# stepping on 2 cores); the default set checks a sample of the Constructor's, 12 bodies x 100
+# steps (the slow set samples every space too).
 NUM_MORPHS, STEPS = 50, 300
 SAMPLE_MORPHS, SAMPLE_STEPS = 12, 100
 # Documented tolerance of the equivalence in float64 (observed: below 2e-9 over 300 steps).
@@ -53,6 +54,15 @@ def qpos_addresses(model, names, dofs=False):
 
 def joint_names(ref):
     return [ref.joint(j).name for j in range(ref.njnt)]
+
+
+@pytest.fixture(scope="module", params=[
+    pytest.param("bad_walker", marks=pytest.mark.slow), "constructor",
+    pytest.param("length_walker", marks=pytest.mark.slow)])
+def space(request):
+    """The planar spaces; the default set checks the Constructor's (every joint kind, the most
+    bodies), the slow set all three (each sample's float64 compile is 30 to 80 s on 2 cores)."""
+    return em.make_space(request.param)
 
 
 def rollout(models, ctrls):
