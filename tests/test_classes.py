@@ -83,12 +83,13 @@ def test_assign_places_each_body_in_the_smallest_class_with_room():
 
 
 @pytest.mark.slow
-def test_fitness_by_class_is_the_single_templates():
+@pytest.mark.parametrize("name", ["constructor", "crawler"])
+def test_fitness_by_class_is_the_single_templates(name):
     """Given controllers (no training), the fitness grouped by class equals the one template's
     body by body, to float32 rounding: the class's template steps the same body, and resets
-    and observations keep the full layout. 8 bodies of a horizon-3 Constructor, a mix that
-    fits the capacities (some in the small class, the rest on the full template)."""
-    space = em.make_space("constructor", horizon=3)
+    and observations keep the full layout. 8 bodies of a horizon-3 space, a mix that fits the
+    capacities (some in the small class, the rest on larger templates)."""
+    space = em.make_space(name, horizon=3)
     size_class = space.size_classes()[0][0]
     keys = jax.random.split(jax.random.PRNGKey(0), 8)
     morphs = jax.vmap(space.random_morphology, (0, None))(keys, 3)

@@ -121,3 +121,36 @@ def test_the_budget_studys_bodies_are_those_its_data_name(space):
     assert max(a2c["returned"], key=lambda r: r["mean"])["body"] == space.canonical(bodies[0])
     limbs = [int(np.sum(m.active)) - 1 for m in bodies]
     assert limbs == [4, 4, 6, 8] and max(limbs) <= space.default_horizon
+
+
+def test_size_classes_hold_the_bodies_of_shallow_chains(space):
+    """The classes' templates hold chains of 1 and 2 limbs: a body fits a class exactly when
+    its deepest limb is no deeper; a fitting body exports to the same unpadded MJCF from the
+    class and from the full template, and the class's template specialised to it has the full
+    one's masses, inertias, frames and joint axes body by body (by name); the class's limb
+    slot j is the full template's `limbs[j]`."""
+    keys = jax.random.split(jax.random.PRNGKey(3), 24)
+    morphs = jax.vmap(space.random_morphology, (0, None))(keys, 10)
+    deepest = np.max(np.where(np.asarray(morphs.active[:, 1:]), cr.SLOT_DEPTH, 0), axis=1)
+    full = jax.jit(space.mjx_model)
+    fields = ("body_mass", "body_inertia", "body_ipos", "body_iquat", "body_pos", "body_quat")
+    assert [c.name for c, _ in space.size_classes()] == ["depth=1", "depth=2"]
+    for depth, (size_class, _) in enumerate(space.size_classes(), start=1):
+        small = size_class.space
+        fits = np.asarray(jax.vmap(size_class.fits)(morphs))
+        np.testing.assert_array_equal(fits, deepest <= depth)
+        assert [space.plan.actuator_names[j] for j in size_class.limbs] == list(
+            small.plan.actuator_names)
+        inside = jax.vmap(small.random_morphology, (0, None))(keys[:8], 10)  # walks of the
+        assert bool(jax.vmap(size_class.fits)(inside).all())  # class's own space fit it
+        m = em.unstack(morphs)[int(np.flatnonzero(fits & (deepest == depth))[0])]
+        assert small.to_mjcf(m) == space.to_mjcf(m)
+        got, want = jax.jit(small.mjx_model)(m), full(m)
+        names = [small.template.body(b).name for b in range(small.template.nbody)]
+        rows = [space.template.body(n).id for n in names]
+        for f in fields:
+            np.testing.assert_allclose(getattr(got, f), np.asarray(getattr(want, f))[rows],
+                                       atol=1e-6, err_msg=f)
+        np.testing.assert_allclose(got.jnt_axis, np.asarray(want.jnt_axis)[
+            [space.template.joint(small.template.joint(j).name).id
+             for j in range(small.template.njnt)]], atol=1e-6)

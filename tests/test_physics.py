@@ -183,14 +183,16 @@ def test_crawler_steps_like_mujoco_c(num_morphs, steps):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("which", [0, 1], ids=["small", "middle"])
-def test_size_class_templates_step_like_mujoco_c(which):
-    """The Constructor's size classes (`Space.size_classes`): each class's padded template,
-    specialised to bodies of the class, steps as MuJoCo C does on their unpadded exports (slow:
-    a float64 compile each, 40 s on 2 cores; the default set checks the classes' exports
-    against the full template's in tests/test_classes.py)."""
-    size_class = em.make_space("constructor").size_classes()[which][0]
-    assert_steps_like_c(size_class.space, stepped(size_class.space, 6, 50, batches=3))
+@pytest.mark.parametrize("name, which", [("constructor", 0), ("constructor", 1), ("crawler", 0)],
+                         ids=["small", "middle", "crawler_small"])
+def test_size_class_templates_step_like_mujoco_c(name, which):
+    """The size classes (`Space.size_classes`): each class's padded template, specialised to
+    bodies of the class, steps as MuJoCo C does on their unpadded exports (slow: a float64
+    compile each, 40 s on 2 cores; the default set checks the classes' exports against the full
+    template's in tests/test_classes.py and tests/test_crawler.py)."""
+    size_class = em.make_space(name).size_classes()[which][0]
+    solver = SOLVER_ELLIPTIC if name == "crawler" else SOLVER
+    assert_steps_like_c(size_class.space, stepped(size_class.space, 6, 50, 3, solver))
 
 
 def assert_steps_like_c(space, run: "Stepped") -> None:
