@@ -81,7 +81,14 @@ class Space(abc.ABC):
     def layout(self, m: Morphology) -> physics.Layout:
         """Where the capsules of `m` lie; valid geometry for inactive slots too."""
 
-    full_share: ClassVar[float] = 1.0  # with size classes: the full template's share of a batch
+    # With size classes: each class's share of a batch, then the full template's (a class left
+    # out, its template the full one's, gives its share to the full template).
+    SHARES: ClassVar[tuple[float, ...]] = (1.0,)
+
+    @property
+    def full_share(self) -> float:
+        """The full template's share of a batch (`evojax_morph.classes`)."""
+        return round(sum(self.SHARES) - sum(share for _, share in self.size_classes()), 6)
 
     def size_classes(self) -> tuple[tuple[SizeClass, float], ...]:
         """Smaller templates for the smaller bodies, smallest first, each with the share of a

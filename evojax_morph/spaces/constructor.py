@@ -147,10 +147,6 @@ class Constructor(Space):
     # A class whose template is the full one's is left out, and its share goes to the full one.
     SHARES = (0.3, 0.8, 0.1)
 
-    @property
-    def full_share(self) -> float:
-        return round(sum(self.SHARES) - sum(share for _, share in self.size_classes()), 6)
-
     @functools.cache  # noqa: B019  (spaces live as long as the process)
     def size_classes(self) -> tuple[tuple[SizeClass, float], ...]:
         trunk = min(4, self.trunk_legs), self.trunk_edges

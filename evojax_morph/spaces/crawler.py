@@ -108,10 +108,6 @@ class Crawler(Space):
         self.depth = depth
         self._limbs = np.flatnonzero(SLOT_DEPTH <= depth)  # the template's limb slots
 
-    @property
-    def full_share(self) -> float:
-        return round(sum(self.SHARES) - sum(share for _, share in self.size_classes()), 6)
-
     @functools.cache  # noqa: B019  (spaces live as long as the process)
     def size_classes(self) -> tuple[tuple[SizeClass, float], ...]:
         found = []
