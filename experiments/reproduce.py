@@ -346,7 +346,8 @@ def draw(data: Path, out: Path) -> None:
                      f"a run of {steps:,} PPO steps: RL against evolution and random walks",
                      fontsize=10)
         name = f"compare_{space}" + ("" if task == "distance" else f"_{task}")
-        name += "" if steps == default else f"_{steps // 1000}k"  # another budget than the task's
+        if steps != default:  # another budget than the task's, said in the name: _20k, _320
+            name += f"_{steps // 1000}k" if steps % 1000 == 0 else f"_{steps}"
         save(fig, out, name, {"task": task, "effects": effects, "runs": runs})
 
 

@@ -44,7 +44,8 @@ def test_every_stage_resumes_and_leaves_its_data(tmp_path):
                 assert b["ci95"][0] <= b["mean"] <= b["ci95"][1] and b["controllers"] == 2
                 assert 0 <= b["upright"] <= 1 and abs(b["distance"]) < 10  # the gait, confirmed
     assert len(groups["compare_random"]["returned"]) == 2
-    for figure in ("fig5_unroll", "fig7_unroll", "fig8_a2c_constructor", "compare_constructor",
+    # the comparison's name says the toy's budget of 320 PPO steps, not the task's
+    for figure in ("fig5_unroll", "fig7_unroll", "fig8_a2c_constructor", "compare_constructor_320",
                    "fig6_ddqn_hidden"):
         assert (out / f"{figure}.png").exists()
 
@@ -63,11 +64,12 @@ def test_the_comparison_draws_each_agent_and_each_difference_with_its_interval(t
     reproduce.draw(tmp_path, tmp_path / "fig")
     assert (tmp_path / "fig" / "compare_constructor.png").exists()
     # data of another budget than the task's are drawn under a name that says it
-    for path in tmp_path.glob("compare_*.json"):
-        path.write_text(json.dumps({**json.loads(path.read_text()),
-                                    "fitness": {"train_steps": 20_000}}))
-    reproduce.draw(tmp_path, tmp_path / "fig")
-    assert (tmp_path / "fig" / "compare_constructor_20k.png").exists()
+    for steps, name in ((20_000, "compare_constructor_20k"), (320, "compare_constructor_320")):
+        for path in tmp_path.glob("compare_*.json"):
+            path.write_text(json.dumps({**json.loads(path.read_text()),
+                                        "fitness": {"train_steps": steps}}))
+        reproduce.draw(tmp_path, tmp_path / "fig")
+        assert (tmp_path / "fig" / f"{name}.png").exists()
     summary = json.loads((tmp_path / "fig" / "compare_constructor.json").read_text())
     agents, differences = summary["effects"]["agents"], summary["effects"]["differences"]
     assert set(summary["runs"]) == set(confirmed) == set(agents)
