@@ -36,6 +36,8 @@ import mujoco
 import numpy as np
 from flax import struct
 
+from evojax_morph import capsules
+
 
 def _mujoco_warp_package() -> str:
     """With EVOJAX_MORPH_MUJOCO_WARP=package, MJX's Warp implementation runs the mujoco-warp
@@ -80,7 +82,6 @@ MUJOCO_WARP = _mujoco_warp_package()  # before mjx imports its Warp implementati
 with contextlib.redirect_stdout(io.StringIO()):  # mjx prints when the optional warp is missing
     from mujoco import mjx
 
-DENSITY = 1000.0  # kg/m^3, MuJoCo's default geom density
 INACTIVE_MARGIN = -1e3  # m: contacts of an inactive geom never activate
 INACTIVE_ARMATURE = 1.0  # kg m^2: keeps the mass matrix of a massless slot positive definite
 ROOT_JOINTS = ("rootx", "rootz", "rooty")  # a planar root: slides along x and z, hinge about y
@@ -198,132 +199,6 @@ class TemplateIndex:
         )
 
 
-def _capsule_frame(start: jax.Array, end: jax.Array):
-    """Centre, half length and quaternion of a capsule from `start` to `end` in the x-z plane.
-
-    MuJoCo aligns a capsule's z axis with the segment; here that is a rotation about y by
-    atan2(dx, dz). A capsule is symmetric about its axis, so this frame and the one MuJoCo's
-    compiler picks describe the same solid.
-    """
-    axis = end - start
-    half = 0.5 * jnp.linalg.norm(axis, axis=-1)
-    angle = jnp.arctan2(axis[..., 0], axis[..., 2])
-    zero = jnp.zeros_like(angle)
-    quat = jnp.stack([jnp.cos(angle / 2), zero, jnp.sin(angle / 2), zero], -1)
-    return 0.5 * (start + end), half, quat, angle
-
-
-def _capsule_frame_3d(start: jax.Array, end: jax.Array):
-    """`_capsule_frame` for a segment anywhere in 3D: centre, half length, the quaternion of
-    the shortest rotation of z onto the segment (as MuJoCo's compiler takes for `fromto`) and
-    its rotation matrix."""
-    axis = end - start
-    length = jnp.linalg.norm(axis, axis=-1, keepdims=True)
-    d = axis / length
-    quat = jnp.concatenate([1 + d[..., 2:], -d[..., 1:2], d[..., :1], jnp.zeros_like(length)], -1)
-    down = 1 + d[..., 2:] < 1e-9  # straight down: half a turn about x
-    quat = jnp.where(down, jnp.array([0.0, 1.0, 0.0, 0.0], d.dtype), quat)
-    quat = quat / jnp.linalg.norm(quat, axis=-1, keepdims=True)
-    return 0.5 * (start + end), 0.5 * length[..., 0], quat, _quat_to_mat(quat)
-
-
-def _quat_to_mat(q: jax.Array) -> jax.Array:
-    """(..., 4) unit quaternions (w, x, y, z) -> (..., 3, 3) rotation matrices."""
-    w, x, y, z = (q[..., i] for i in range(4))
-    rows = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ]
-    return jnp.stack([jnp.stack(r, -1) for r in rows], -2)
-
-
-def _mat_to_quat(r: jax.Array) -> jax.Array:
-    """(..., 3, 3) rotation matrices -> (..., 4) unit quaternions, from the largest of the four
-    candidate components (Shepperd), so no division is near zero."""
-    e = lambda i, j: r[..., i, j]  # noqa: E731
-    t = [1 + e(0, 0) + e(1, 1) + e(2, 2), 1 + e(0, 0) - e(1, 1) - e(2, 2),
-         1 - e(0, 0) + e(1, 1) - e(2, 2), 1 - e(0, 0) - e(1, 1) + e(2, 2)]
-    zx, yz, xy = e(2, 1) - e(1, 2), e(0, 2) - e(2, 0), e(1, 0) - e(0, 1)
-    sx, sy, sz = e(2, 1) + e(1, 2), e(0, 2) + e(2, 0), e(1, 0) + e(0, 1)
-    candidates = jnp.stack([  # each proportional to (w, x, y, z), the k-th component 4 q_k^2
-        jnp.stack([t[0], zx, yz, xy], -1), jnp.stack([zx, t[1], sz, sy], -1),
-        jnp.stack([yz, sz, t[2], sx], -1), jnp.stack([xy, sy, sx, t[3]], -1)], -2)
-    best = jnp.argmax(jnp.stack(t, -1), -1)
-    q = jnp.take_along_axis(candidates, best[..., None, None], -2)[..., 0, :]
-    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
-    return q * jnp.where(q[..., :1] < 0, -1.0, 1.0)
-
-
-def _capsule_inertia(radius: jax.Array, half: jax.Array):
-    """Mass and principal inertia (x, y, z; z along the axis) of a solid capsule of DENSITY."""
-    h = 2 * half
-    cyl = DENSITY * jnp.pi * radius**2 * h
-    caps = DENSITY * 4.0 / 3.0 * jnp.pi * radius**3  # both hemispheres
-    axial = cyl * radius**2 / 2 + caps * 2 * radius**2 / 5
-    perp = cyl * (3 * radius**2 + h**2) / 12
-    perp = perp + caps * (2 * radius**2 / 5 + h**2 / 4 + 3 * h * radius / 8)
-    return cyl + caps, jnp.stack([perp, perp, axial], -1)
-
-
-def _rot_y(angle: jax.Array) -> jax.Array:
-    c, s = jnp.cos(angle), jnp.sin(angle)
-    one, zero = jnp.ones_like(c), jnp.zeros_like(c)
-    rows = [jnp.stack([c, zero, s], -1), jnp.stack([zero, one, zero], -1)]
-    return jnp.stack(rows + [jnp.stack([-s, zero, c], -1)], -2)
-
-
-def _body_inertial(plan: BodyPlan, mass_g, inertia_g, centre_g, angle_g):
-    """Mass, centre of mass, principal inertia and its frame for every body of the plan.
-
-    Each body's inertia tensor is the sum of its capsules' tensors moved to the body's centre of
-    mass. Every capsule axis lies in the x-z plane, so the tensor has no xy or yz products and
-    its principal frame is a rotation about y, found in closed form.
-    """
-    num_bodies = 1 + plan.num_limbs
-    owner = np.zeros((num_bodies, len(plan.geom_body)))  # owner[b, g] = 1 if geom g is on body b
-    owner[np.array(plan.geom_body), np.arange(len(plan.geom_body))] = 1.0
-    mass = owner @ mass_g
-    safe = jnp.where(mass > 0, mass, 1.0)
-    com = (owner @ (mass_g[:, None] * centre_g)) / safe[:, None]
-    rot = _rot_y(angle_g)  # (G, 3, 3)
-    tensor_g = jnp.einsum("gij,gj,gkj->gik", rot, inertia_g, rot)
-    offset = centre_g[None] - com[:, None]  # (B, G, 3)
-    eye = jnp.eye(3)
-    shift = mass_g[None, :, None, None] * (
-        jnp.sum(offset**2, -1)[..., None, None] * eye - offset[..., :, None] * offset[..., None, :]
-    )
-    tensor = jnp.einsum("bg,gij->bij", owner, tensor_g) + jnp.sum(owner[..., None, None] * shift, 1)
-    ixx, iyy, izz, ixz = tensor[:, 0, 0], tensor[:, 1, 1], tensor[:, 2, 2], tensor[:, 0, 2]
-    phi = 0.5 * jnp.arctan2(2 * ixz, ixx - izz)  # principal axis (cos phi, 0, sin phi)
-    c, s = jnp.cos(phi), jnp.sin(phi)
-    i_x = c * c * ixx + 2 * c * s * ixz + s * s * izz
-    principal = jnp.stack([i_x, iyy, s * s * ixx - 2 * c * s * ixz + c * c * izz], -1)
-    zero = jnp.zeros_like(phi)
-    iquat = jnp.stack([jnp.cos(phi / 2), zero, -jnp.sin(phi / 2), zero], -1)  # rotation by -phi
-    return mass, com, principal, iquat
-
-
-def _body_inertial_3d(plan: BodyPlan, mass_g, inertia_g, centre_g, rot_g):
-    """`_body_inertial` for capsules in any direction: the principal frame by eigh."""
-    num_bodies = 1 + plan.num_limbs
-    owner = np.zeros((num_bodies, len(plan.geom_body)))
-    owner[np.array(plan.geom_body), np.arange(len(plan.geom_body))] = 1.0
-    mass = owner @ mass_g
-    safe = jnp.where(mass > 0, mass, 1.0)
-    com = (owner @ (mass_g[:, None] * centre_g)) / safe[:, None]
-    tensor_g = jnp.einsum("gij,gj,gkj->gik", rot_g, inertia_g, rot_g)
-    offset = centre_g[None] - com[:, None]  # (B, G, 3)
-    shift = mass_g[None, :, None, None] * (
-        jnp.sum(offset**2, -1)[..., None, None] * jnp.eye(3)
-        - offset[..., :, None] * offset[..., None, :]
-    )
-    tensor = jnp.einsum("bg,gij->bij", owner, tensor_g) + jnp.sum(owner[..., None, None] * shift, 1)
-    principal, axes = jnp.linalg.eigh(tensor)  # columns: the principal axes in the body frame
-    axes = axes * jnp.sign(jnp.linalg.det(axes))[:, None, None]  # a rotation, not a reflection
-    return mass, com, jnp.maximum(principal, 0.0), _mat_to_quat(axes)
-
-
 def _put(array: jax.Array, index, value) -> jax.Array:
     """`array.at[index].set(value)`, keeping the dtype of `array`."""
     return array.at[index].set(jnp.asarray(value).astype(array.dtype))
@@ -345,9 +220,9 @@ def specialise(
 
     # GEOMS
     free = plan.root == "free"
-    frame = _capsule_frame_3d if free else _capsule_frame
-    centre, half, quat, turn = frame(layout.geom_from, layout.geom_to)  # turn: angle or matrix
-    mass_g, inertia_g = _capsule_inertia(layout.geom_radius, half)
+    frame = capsules.frame_3d if free else capsules.frame_xz
+    centre, half, quat, rot = frame(layout.geom_from, layout.geom_to)
+    mass_g, inertia_g = capsules.inertia(layout.geom_radius, half)
     mass_g = mass_g * geom_on
     inertia_g = inertia_g * geom_on[:, None]
     g = index.geom
@@ -357,8 +232,10 @@ def specialise(
     margin = _put(template.geom_margin, g, margin)
 
     # BODIES
-    inertial = _body_inertial_3d if free else _body_inertial
-    mass, com, principal, iquat = inertial(plan, mass_g, inertia_g, centre, turn)
+    owner = np.zeros((1 + plan.num_limbs, len(plan.geom_body)))  # 1 where geom g is on body b
+    owner[np.array(plan.geom_body), np.arange(len(plan.geom_body))] = 1.0
+    inertial = capsules.bodies_3d if free else capsules.bodies_xz
+    mass, com, principal, iquat = inertial(owner, mass_g, inertia_g, centre, rot)
     b = index.body
     body_pos = _put(_put(template.body_pos, b[0], layout.root_pos), b[1:], layout.limb_pos)
     subtree = mass
