@@ -73,64 +73,41 @@ def write_results(
     steps: int, saved: list[str], gif: bool, record: dict, phase=lambda name: None,
     episode_seconds: float = 5.0,
 ) -> None:
-    """curve.png, best.xml, trajectory.png (if `greedy`), confirmed.png (if the confirm stage's
-    `record` confirmed bodies), summary.json and best.gif (if controllers were `saved` and
-    `gif`), and a printed digest with the best bodies of the body log and the confirmed ones
-    (with their gait: metres in an episode of `episode_seconds`, and upright);
+    """summary.json and a printed digest of it, with the best bodies of the body log and the
+    confirmed ones (with their gait: metres in an episode of `episode_seconds`, and upright);
+    curve.png, best.xml, trajectory.png (if `greedy`), confirmed.png (if the confirm stage's
+    `record` confirmed bodies) and best.gif (if controllers were `saved` and `gif`).
     `phase("results")` is called before best.gif is drawn, `phase("best_gif")` after."""
-    col = lambda name: np.array([r[name] for r in rows], float)  # noqa: E731  (resumed: strings)
-    plots.plot_curve(
-        out / "curve.png", col("step"), col("reward_median"), col("reward_q25"), col("reward_q75")
-    )
-    (out / "best.xml").write_text(space.to_mjcf(best))
-    confirmed = record["confirmed"]
-    draw = bodylog.best_draw(out / "bodies.sqlite")
+    log = out / "bodies.sqlite"
     summary = {
         "best_fitness": best_fitness,  # the confirmed mean; else (not confirmed) the best draw
         "best_morphology": best.to_dict(),
         "best_body": space.canonical(best),
-        "best_single_draw": draw,
-        "confirmed": confirmed,
+        "best_single_draw": bodylog.best_draw(log),
+        "confirmed": record["confirmed"],
         "confirm_note": record["confirm_note"],
         "env_steps": steps,
-        "greedy_trajectory": None,
-        "best_bodies": bodylog.best_bodies(out / "bodies.sqlite", 10),
+        "greedy_trajectory": None if greedy is None else [
+            {"action": a, "fitness": f, "morphology": m.to_dict()}
+            for a, f, m in zip(["m0"] + greedy.actions, greedy.fitness, greedy.morphs)],
+        "best_bodies": bodylog.best_bodies(log, 10),
         "controllers": saved,
     }
+    print_summary(summary, space, best, greedy, episode_seconds)
     written = "curve.png best.xml summary.json metrics.csv bodies.sqlite tb/ checkpoints/"
-    print_best_bodies(summary["best_bodies"])
-    if confirmed:
-        print_confirmed(confirmed, record["confirm_note"])
-        plots.plot_confirmed(out / "confirmed.png", confirmed)
+    written += " controllers/" if saved else ""
+    col = lambda name: np.array([r[name] for r in rows], float)  # noqa: E731  (resumed: strings)
+    plots.plot_curve(out / "curve.png", col("step"), col("reward_median"), col("reward_q25"),
+                     col("reward_q75"))
+    (out / "best.xml").write_text(space.to_mjcf(best))
+    if summary["confirmed"]:
+        plots.plot_confirmed(out / "confirmed.png", summary["confirmed"])
         written = "confirmed.json confirmed.png " + written
-        top = confirmed[0]
-        what = (f"confirmed mean {top['mean']:.4g}, 95% CI [{top['ci95'][0]:.4g}, "
-                f"{top['ci95'][1]:.4g}] over {top['controllers']} fresh controllers")
-        gait = walks(top, episode_seconds)
-        if gait:
-            print(f"\nconfirmed best {gait}")
-    else:
-        print(f"\nconfirm: {record['confirm_note']}")
-        what = f"fitness {best_fitness:.4g}, its highest single draw"
-    print(f"\nhighest single draw: {draw['fitness']:.4g} by {draw['body']} at step "
-          f"{draw['step']}")
-    print(f"\nbest morphology ({what}):")
-    print(space.format(best))
     if greedy is not None:
-        morphs, fitness, actions, _ = greedy
-        plots.plot_trajectory(out / "trajectory.png", space, morphs, fitness, actions)
-        summary["greedy_trajectory"] = [
-            {"action": a, "fitness": f, "morphology": m.to_dict()}
-            for a, f, m in zip(["m0"] + actions, fitness, morphs)
-        ]
-        print("\ngreedy trajectory from m0:")
-        for a, f in zip(["m0"] + actions, fitness):
-            print(f"  {a:<32} fitness {f:.4g}")
-        print(f"\nfinal greedy morphology:\n{space.format(morphs[-1])}")
+        plots.plot_trajectory(out / "trajectory.png", space, greedy.morphs, greedy.fitness,
+                              greedy.actions)
         written = "trajectory.png " + written
-    if saved:
-        written += " controllers/"
-    phase("results")
+    phase("results")  # before best.gif, drawn last: a failing OpenGL leaves the rest written
     if saved and gif:
         shown = video.render(out, "best", mp4=False)
         for note in shown.notes:
@@ -142,6 +119,34 @@ def write_results(
     phase("best_gif")
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     print(f"\nwrote {out}/: {written}")
+
+
+def print_summary(summary: dict, space, best, greedy: Greedy | None,
+                  episode_seconds: float) -> None:
+    """The digest of a run's `summary`: the best bodies of its log, the confirmed ones, its
+    highest single draw, its best body and its greedy trajectory."""
+    print_best_bodies(summary["best_bodies"])
+    confirmed, draw = summary["confirmed"], summary["best_single_draw"]
+    if confirmed:
+        print_confirmed(confirmed, summary["confirm_note"])
+        top = confirmed[0]
+        what = (f"confirmed mean {top['mean']:.4g}, 95% CI [{top['ci95'][0]:.4g}, "
+                f"{top['ci95'][1]:.4g}] over {top['controllers']} fresh controllers")
+        gait = walks(top, episode_seconds)
+        if gait:
+            print(f"\nconfirmed best {gait}")
+    else:
+        print(f"\nconfirm: {summary['confirm_note']}")
+        what = f"fitness {summary['best_fitness']:.4g}, its highest single draw"
+    print(f"\nhighest single draw: {draw['fitness']:.4g} by {draw['body']} at step "
+          f"{draw['step']}")
+    print(f"\nbest morphology ({what}):")
+    print(space.format(best))
+    if greedy is not None:
+        print("\ngreedy trajectory from m0:")
+        for a, f in zip(["m0"] + greedy.actions, greedy.fitness):
+            print(f"  {a:<32} fitness {f:.4g}")
+        print(f"\nfinal greedy morphology:\n{space.format(greedy.morphs[-1])}")
 
 
 def print_best_bodies(best: list[dict]) -> None:

@@ -16,10 +16,8 @@ is 4 physics steps of 5 ms. For each batch size B this prints:
 Timings exclude compilation (a warm-up call first) and are medians of --repeats calls.
 --update-epochs sets PPO's epochs per update: timing 1 against the standard 8 (and
 --train-steps 0, the evaluation episodes alone) splits a call into learner and rollouts.
---trace DIR records one more call per batch with JAX's profiler (DIR/B<batch>) and adds to the
-row what the device did in it (`trace_summary`: busy and idle time, time by kernel kind, the
-top kernels); `warp_graph_captures` counts the CUDA graphs Warp captured during the timed
-calls (0 when every call hits its graph cache).
+Its device traces (`--trace DIR`) and its count of Warp's graph captures answered where a
+Warp call's time goes (docs/benchmarks.md) and are retired (at git 88d6bf1).
 --physics names the engine (`evojax_morph.engines`); --deterministic asks XLA for deterministic
 GPU ops first, as the run command does on the JAX engine unless --fast-gpu (on Warp it leaves
 them off: they buy no reproducibility there); --warp-deterministic MuJoCo Warp's
@@ -31,17 +29,12 @@ them off: they buy no reproducibility there); --warp-deterministic MuJoCo Warp's
       --single 0 --mutations 8 --classes   # one template against size classes
   python -m experiments.bench_fitness --space constructor --mutations 8 --classes \
       --agreement 16 --seeds 8 --train-steps 2000   # ...and in distribution (CPU)
-  python -m experiments.bench_fitness --batches 1024 --physics warp --single 0 \
-      --trace /tmp/trace   # where the device's time goes
 """
 
 from __future__ import annotations
 
 import argparse
-import collections
-import contextlib
 import dataclasses
-import glob
 import itertools
 import json
 import time
@@ -60,108 +53,18 @@ from evojax_morph.physics import MUJOCO_WARP
 STANDARD = em.FitnessConfig(ppo=em.standard_ppo(10_000))
 
 
-def timed(fn, repeats: int, during=None) -> tuple[float, float, int]:
+def timed(fn, repeats: int) -> tuple[float, float, int]:
     """(median seconds of `repeats` calls after a warm-up, largest difference between the
-    outputs of all calls, how many outputs differ in any call); the repeats run inside the
-    context manager `during`, if given."""
+    outputs of all calls, how many outputs differ in any call)."""
     first = np.asarray(jax.block_until_ready(fn()))  # compile and warm up
     times, diff, differ = [], 0.0, np.zeros(first.shape, bool)
-    with during or contextlib.nullcontext():
-        for _ in range(repeats):
-            start = time.perf_counter()
-            out = np.asarray(jax.block_until_ready(fn()))
-            times.append(time.perf_counter() - start)
-            diff = max(diff, float(np.nanmax(np.abs(out - first))) if out.size else 0.0)
-            differ |= out != first
+    for _ in range(repeats):
+        start = time.perf_counter()
+        out = np.asarray(jax.block_until_ready(fn()))
+        times.append(time.perf_counter() - start)
+        diff = max(diff, float(np.nanmax(np.abs(out - first))) if out.size else 0.0)
+        differ |= out != first
     return float(np.median(times)), diff, int(differ.sum())
-
-
-class WarpCaptures:
-    """Counts the CUDA graphs Warp captures while it is entered: an FFI call whose buffers miss
-    Warp's graph cache (`JaxCallableGraphMode.WARP`) captures and instantiates a new graph. None
-    where Warp is not installed."""
-
-    def __enter__(self):
-        self.count, self._warp = 0, None
-        try:
-            import warp
-        except ImportError:
-            self.count = None
-            return self
-        base, outer = warp.ScopedCapture, self
-
-        class Counting(base):
-            def __init__(self, *args, **kwargs):
-                outer.count += 1
-                super().__init__(*args, **kwargs)
-
-        self._warp, self._base, warp.ScopedCapture = warp, base, Counting
-        return self
-
-    def __exit__(self, *exc):
-        if self._warp is not None:
-            self._warp.ScopedCapture = self._base
-
-
-def _kind(name: str) -> str:
-    """The kind of a device event, by its name: warp (MuJoCo Warp's kernels), gemm, copy, xla."""
-    low = name.lower()
-    if "memcpy" in low or "memset" in low:
-        return "copy"
-    if "_cuda_kernel_forward" in low:
-        return "warp"
-    if any(k in low for k in ("gemm", "cublas", "cutlass", "xmma", "sm90_")):
-        return "gemm"
-    return "xla"
-
-
-def trace_summary(profile, top: int = 25) -> dict | None:
-    """What the device did in a trace (`jax.profiler.ProfileData`), or None with no GPU plane.
-
-    Returns:
-      span_ms (first kernel's start to last's end), busy_ms (the union of kernel intervals over
-      every stream) and idle_ms; kernels (their count); by_kind_ms (`_kind`); top: [name, ms,
-      count] of the longest kernels by total time. (ppo.py's named scopes are not in a raw
-      trace of a GPU: xprof derives them when it shows one.)
-    """
-    planes = [p for p in profile.planes if p.name.startswith("/device:GPU")]
-    kernels = []
-    for plane in planes:
-        for line in plane.lines:
-            if line.name.startswith("Stream"):
-                kernels += [(e.start_ns, e.end_ns, e.name) for e in line.events]
-    if not kernels:
-        return None
-    kernels.sort()
-    busy, start, end = 0.0, kernels[0][0], kernels[0][0]
-    for s, e, _ in kernels:
-        if s > end:
-            busy, start = busy + end - start, s
-        end = max(end, e)
-    busy += end - start
-    span = end - kernels[0][0]  # `end` is the last end of all
-    by_kind, by_name = collections.Counter(), collections.defaultdict(lambda: [0.0, 0])
-    for s, e, name in kernels:
-        by_kind[_kind(name)] += (e - s) / 1e6
-        by_name[name][0] += (e - s) / 1e6
-        by_name[name][1] += 1
-    longest = sorted(by_name.items(), key=lambda kv: -kv[1][0])[:top]
-    return {
-        "span_ms": span / 1e6,
-        "busy_ms": busy / 1e6,
-        "idle_ms": (span - busy) / 1e6,
-        "kernels": len(kernels),
-        "by_kind_ms": dict(by_kind),
-        "top": [[name[:120], ms, n] for name, (ms, n) in longest],
-    }
-
-
-def traced(fn, directory: str) -> dict | None:
-    """`trace_summary` of one call of `fn` under JAX's profiler, its files in `directory`."""
-    with jax.profiler.trace(directory):
-        jax.block_until_ready(fn())
-    path = sorted(glob.glob(f"{directory}/**/*.xplane.pb", recursive=True))[-1]
-    return trace_summary(jax.profiler.ProfileData.from_file(path))
 
 
 def median_time(fn, repeats: int) -> float:
@@ -252,9 +155,6 @@ def main():
     parser.add_argument("--warp-deterministic", action="store_true",
                         help="MuJoCo Warp's Option.deterministic (evojax_morph.warp)")
     parser.add_argument("--out", default=None, help="append each row to this JSON-lines file")
-    parser.add_argument("--trace", default=None, metavar="DIR",
-                        help="profile one more call per batch into DIR/B<batch>; the row gets "
-                        "what the device did (trace_summary)")
     parser.add_argument("--mutations", type=int, default=3, help="random mutations a body")
     parser.add_argument("--classes", action="store_true",
                         help="each batch also with the space's size classes (a row each)")
@@ -296,9 +196,7 @@ def main():
         keys = jax.random.split(jax.random.PRNGKey(batch), batch)
         morphs = walk(keys, args.mutations)
         evaluate = lambda: em.evaluate(space, morphs, keys, cfg).fitness  # noqa: B023  (timed now)
-        captures = WarpCaptures()  # counted in the timed calls, after the warm-up's captures
-        t_batch, repeat_diff, repeat_differing = timed(evaluate, args.repeats, captures)
-        trace = traced(evaluate, f"{args.trace}/B{batch}") if args.trace else None
+        t_batch, repeat_diff, repeat_differing = timed(evaluate, args.repeats)
 
         t_single = one_at_a_time(space, morphs, keys, cfg, min(batch, args.single))
 
@@ -324,7 +222,6 @@ def main():
             "batching_gain": None if t_single is None else t_single / t_batch,
             "repeat_diff": repeat_diff,
             "repeat_differing": repeat_differing,  # of `batch` fitness values
-            "warp_graph_captures": captures.count if warp else None, "trace": trace,
             "date": time.strftime("%Y-%m-%d")})
         print(json.dumps(rows[-1]), flush=True)
         if args.out:

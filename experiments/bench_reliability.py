@@ -35,6 +35,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.stats
 
 import evojax_morph as em
 from evojax_morph import engines, ppo
@@ -61,10 +62,7 @@ AGGREGATES = ("mean", "max")
 
 
 def spearman(a: np.ndarray, b: np.ndarray) -> float:
-    rank = lambda x: np.argsort(np.argsort(x, kind="stable"), kind="stable").astype(float)
-    ra, rb = rank(a), rank(b)
-    ra, rb = ra - ra.mean(), rb - rb.mean()
-    return float(ra @ rb / np.sqrt((ra @ ra) * (rb @ rb)))
+    return float(scipy.stats.spearmanr(a, b).statistic)
 
 
 def statistics(f: np.ndarray, k: int, aggregate: str) -> dict:
@@ -107,9 +105,8 @@ def compiled_train(space, cfg: em.PPOConfig, batch: int, physics: str = "jax"):
     return jax.jit(jax.vmap(init)), fn, time.perf_counter() - start
 
 
-def landscape_fitness(
-    space, cfg: em.PPOConfig, seeds: int, batch: int, physics: str = "jax"
-) -> tuple[np.ndarray, float, list]:
+def landscape_fitness(space, cfg: em.PPOConfig, seeds: int, batch: int,
+                      physics: str = "jax") -> tuple[np.ndarray, float, list]:
     """(bodies, seeds) single-controller fitness of every body, its seconds (compile excluded)."""
     bodies, _ = space.enumerate_bodies()
     jobs = [(b, s) for b in range(len(bodies)) for s in range(seeds)]
@@ -120,9 +117,8 @@ def landscape_fitness(
     for start in range(0, len(jobs), batch):
         part = jobs[start : start + batch]
         part = part + [part[0]] * (batch - len(part))  # one compiled shape
-        keys = jnp.stack(
-            [jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(7), b), s) for b, s in part]
-        )
+        keys = jnp.stack([jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(7), b), s)
+                          for b, s in part])
         morphs = em.stack([bodies[b] for b, _ in part])
         params = init(jax.vmap(lambda k: jax.random.fold_in(k, 1))(keys))
         t = time.perf_counter()
@@ -145,22 +141,14 @@ def cost(space, cfg: em.PPOConfig, k: int, batch: int, repeats: int, physics: st
         t = time.perf_counter()
         jax.block_until_ready(train(keys, morphs, params))
         times.append(time.perf_counter() - t)
-    return {
-        "k": k,
-        "batch": batch,
-        "seconds_per_call": float(np.median(times)),
-        "seconds_per_eval": float(np.median(times)) / batch,
-        "compile_s": compile_s,
-    }
+    return {"k": k, "batch": batch, "seconds_per_call": float(np.median(times)),
+            "seconds_per_eval": float(np.median(times)) / batch, "compile_s": compile_s}
 
 
 def table(results: list[dict]) -> str:
-    head = (
-        f"{'variant':<12} {'K':>2} {'agg':<4} {'evals':>5} {'cv':>6} {'n/s':>6} "
-        f"{'pair20':>7} {'pair90':>7} "
-        f"{'split20':>7} {'split90':>7} {'agree':>5} {'top10':>7} {'s/eval':>8}"
-    )
-    lines = [head]
+    lines = [f"{'variant':<12} {'K':>2} {'agg':<4} {'evals':>5} {'cv':>6} {'n/s':>6} "
+             f"{'pair20':>7} {'pair90':>7} {'split20':>7} {'split90':>7} {'agree':>5} "
+             f"{'top10':>7} {'s/eval':>8}"]
     for r in results:
         costs = {c["k"]: c["seconds_per_eval"] for c in r["cost"]}
         for s in r["stats"]:
@@ -185,11 +173,8 @@ def plot(results: list[dict], path: Path) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
     for r in results:
         costs = {c["k"]: c["seconds_per_eval"] for c in r["cost"]}
-        pts = [
-            (costs[s["k"]], s["noise_to_signal"], s["cv"], s["k"])
-            for s in r["stats"]
-            if s["aggregate"] == "mean" and s["k"] in costs
-        ]
+        pts = [(costs[s["k"]], s["noise_to_signal"], s["cv"], s["k"]) for s in r["stats"]
+               if s["aggregate"] == "mean" and s["k"] in costs]
         if not pts:
             continue
         x, ns, cv, ks = map(np.array, zip(*pts))
@@ -197,22 +182,14 @@ def plot(results: list[dict], path: Path) -> None:
             (line,) = ax.plot(x, y, marker="o", label=r["variant"])
             for xi, yi, k in zip(x, y, ks):
                 ax.annotate(f"K={k}", (xi, yi), fontsize=7, color=line.get_color())
-    today = [
-        c["seconds_per_eval"]
-        for r in results
-        if r["variant"] == "standard"
-        for c in r["cost"]
-        if c["k"] == 1
-    ]
+    today = [c["seconds_per_eval"] for r in results if r["variant"] == "standard"
+             for c in r["cost"] if c["k"] == 1]
     for ax, name, target in zip(axes, ("noise-to-signal", "CV of the top 10"), (0.3, 0.15)):
         ax.axhline(target, color="0.5", ls="--", lw=1, label="target")
         if today:
             ax.axvline(2 * today[0], color="0.5", ls=":", lw=1, label="2x the standard cost")
-        ax.set(
-            xlabel="seconds per evaluation at the main job's batch",
-            ylabel=name,
-            title="fitness = mean of K controllers",
-        )
+        ax.set(xlabel="seconds per evaluation at the main job's batch", ylabel=name,
+               title="fitness = mean of K controllers")
     axes[0].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -223,34 +200,19 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--variants", nargs="+", default=["standard"], choices=list(VARIANTS))
-    parser.add_argument(
-        "--seeds", type=int, default=32, help="single-controller evaluations per body"
-    )
-    parser.add_argument(
-        "--ks", type=int, nargs="+", default=[1, 2, 4, 8], help="controllers per evaluation"
-    )
-    parser.add_argument(
-        "--cost-ks", type=int, nargs="*", default=None, help="K timed (default: --ks)"
-    )
-    parser.add_argument(
-        "--batch", type=int, default=2880, help="bodies x seeds per compiled landscape call"
-    )
-    parser.add_argument(
-        "--cost-batch", type=int, default=256, help="bodies per timed call (the main job's batch)"
-    )
-    parser.add_argument("--repeats", type=int, default=1)
-    parser.add_argument(
-        "--cost-only",
-        action="store_true",
-        help="time --cost-ks only, at --train-steps (no landscape)",
-    )
-    parser.add_argument(
-        "--train-steps", type=int, default=None, help="with --cost-only: the budget"
-    )
-    parser.add_argument("--out", default="runs/reliability")
-    parser.add_argument("--space", default="bad_walker", help="an enumerable space")
-    parser.add_argument("--physics", default="jax", choices=engines.list_engines())
-    parser.add_argument("--deterministic", action="store_true", help="deterministic GPU ops")
+    add = parser.add_argument
+    add("--seeds", type=int, default=32, help="single-controller evaluations per body")
+    add("--ks", type=int, nargs="+", default=[1, 2, 4, 8], help="controllers per evaluation")
+    add("--cost-ks", type=int, nargs="*", default=None, help="K timed (default: --ks)")
+    add("--batch", type=int, default=2880, help="bodies x seeds per compiled landscape call")
+    add("--cost-batch", type=int, default=256, help="bodies per timed call (the main job's batch)")
+    add("--repeats", type=int, default=1)
+    add("--cost-only", action="store_true", help="time --cost-ks only, at --train-steps")
+    add("--train-steps", type=int, default=None, help="with --cost-only: the budget")
+    add("--out", default="runs/reliability")
+    add("--space", default="bad_walker", help="an enumerable space")
+    add("--physics", default="jax", choices=engines.list_engines())
+    add("--deterministic", action="store_true", help="deterministic GPU ops")
     args = parser.parse_args(argv)
     if args.deterministic:
         em.deterministic_gpu()
@@ -268,13 +230,9 @@ def main(argv=None):
             cfg = dataclasses.replace(cfg, train_steps=args.train_steps or cfg.train_steps)
             for k in (args.ks if args.cost_ks is None else args.cost_ks):
                 c = cost(space, cfg, k, args.cost_batch, args.repeats, args.physics)
-                print(
-                    f"{name} at {cfg.train_steps} steps, K={k}, {args.cost_batch} bodies on "
-                    f"{device}: "
-                    f"{c['seconds_per_call']:.2f} s per call, {c['seconds_per_eval']:.3f} s per "
-                    "evaluation",
-                    flush=True,
-                )
+                print(f"{name} at {cfg.train_steps} steps, K={k}, {args.cost_batch} bodies on "
+                      f"{device}: {c['seconds_per_call']:.2f} s per call, "
+                      f"{c['seconds_per_eval']:.3f} s per evaluation", flush=True)
             continue
         path = out / f"reliability_{name}{suffix}.json"
         settings = {"ppo": dataclasses.asdict(cfg), "seeds": args.seeds, "device": device}
@@ -284,29 +242,17 @@ def main(argv=None):
             print(f"{name}: already in {path}", flush=True)
             continue
         fitness, seconds, keys = landscape_fitness(space, cfg, args.seeds, args.batch, args.physics)
-        stats = [
-            statistics(fitness, k, agg) for agg in AGGREGATES for k in args.ks if k <= args.seeds
-        ]
-        costs = [
-            cost(space, cfg, k, args.cost_batch, args.repeats, args.physics)
-            for k in (args.ks if args.cost_ks is None else args.cost_ks)
-        ]
-        result = {
-            "variant": name + suffix,
-            "settings": settings,
-            "landscape_seconds": seconds,
-            "evaluations": fitness.size,
-            "bodies": keys,
-            "fitness": fitness.round(3).tolist(),
-            "stats": stats,
-            "cost": costs,
-            "jax": jax.__version__,
-            "date": time.strftime("%Y-%m-%d"),
-        }
+        stats = [statistics(fitness, k, agg) for agg in AGGREGATES for k in args.ks
+                 if k <= args.seeds]
+        costs = [cost(space, cfg, k, args.cost_batch, args.repeats, args.physics)
+                 for k in (args.ks if args.cost_ks is None else args.cost_ks)]
+        result = {"variant": name + suffix, "settings": settings, "landscape_seconds": seconds,
+                  "evaluations": fitness.size, "bodies": keys, "fitness": fitness.round(3).tolist(),
+                  "stats": stats, "cost": costs, "jax": jax.__version__,
+                  "date": time.strftime("%Y-%m-%d")}
         path.write_text(json.dumps(result))
-        print(
-            f"{name}: {fitness.size} evaluations in {seconds:.1f} s (compile excluded)", flush=True
-        )
+        print(f"{name}: {fitness.size} evaluations in {seconds:.1f} s (compile excluded)",
+              flush=True)
         print(table([result]), flush=True)
     if args.cost_only:
         return
