@@ -43,6 +43,7 @@ from evojax_morph.ppo_networks import (
     Params,
     PPOConfig,
     Transition,
+    make_deterministic_policy,
     make_init,
     make_loss,
     make_networks,
@@ -76,15 +77,7 @@ class TrainResult:
 def make_policy(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig = PPOConfig()):
     """`policy(params, obs) -> action`: the deterministic actions (..., A) of one controller
     (no leading K axis) for (..., obs_size) observations, as the evaluation episodes act."""
-    return _deterministic(make_networks(Locomotion(space, task_cfg), cfg))
-
-
-def _deterministic(networks):
-    def policy(params: Params, obs: jax.Array) -> jax.Array:
-        logits = networks.policy_network.apply(params.normalizer, params.policy, obs)
-        return networks.parametric_action_distribution.mode(logits)
-
-    return policy
+    return make_deterministic_policy(make_networks(Locomotion(space, task_cfg), cfg))
 
 
 def make_evaluate(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig = PPOConfig()):
@@ -365,7 +358,7 @@ def make_evaluate_learners(space: Space, env: Locomotion, engine: Engine, cfg: P
     """`evaluate(keys (L,), models (B,), params (L, ...)) -> Episodes` of (L, eval_episodes)
     arrays: L learners' deterministic policies, the episodes of learner l reset with
     `split(keys[l], eval_episodes)`, as `make_evaluate` scores one controller."""
-    policy = jax.vmap(_deterministic(make_networks(env, cfg)))
+    policy = jax.vmap(make_deterministic_policy(make_networks(env, cfg)))
     episodes = cfg.eval_episodes
 
     def evaluate(keys: jax.Array, models, params: Params) -> Episodes:

@@ -118,6 +118,17 @@ def make_networks(env: Locomotion, cfg: PPOConfig):
     )
 
 
+def make_deterministic_policy(networks):
+    """`policy(params, obs) -> action`: the mode of the policy's action distribution, as the
+    evaluation episodes act."""
+
+    def policy(params: Params, obs: jax.Array) -> jax.Array:
+        logits = networks.policy_network.apply(params.normalizer, params.policy, obs)
+        return networks.parametric_action_distribution.mode(logits)
+
+    return policy
+
+
 def make_init(env: Locomotion, networks, cfg: PPOConfig):
     """`init(key) -> Params`: fresh parameters, one controller or K stacked along a leading axis."""
 

@@ -22,10 +22,11 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from evojax_morph import controllers, ppo
+from evojax_morph import controllers
 from evojax_morph.controllers import SavedController
 from evojax_morph.locomotion import Locomotion
 from evojax_morph.opengl import choose_gl
+from evojax_morph.ppo_networks import make_deterministic_policy, make_init, make_networks
 
 BACKENDS = ("auto", "mujoco", "matplotlib")
 
@@ -59,8 +60,8 @@ _EPISODE_FNS: dict = {}
 
 
 def _episode_fn(space, fitness):
-    """jit(episode(key, morph, params)) -> (qpos (L, nq), reward (L,), done (L,), terminated
-    (L,), qpos0), one
+    """(jit(episode(key, morph, params)) -> (qpos (L, nq), reward (L,), done (L,), terminated
+    (L,), qpos0), the control step's seconds, init(key) -> one controller's parameters), one
     per space and fitness config, compiled once however often the space is made again."""
     cache_key = (space.name, space.max_nodes, fitness)
     if cache_key not in _EPISODE_FNS:
@@ -70,7 +71,8 @@ def _episode_fn(space, fitness):
 
 def _make_episode_fn(space, fitness):
     env = Locomotion(space, fitness.task)
-    policy = ppo.make_policy(space, fitness.task, fitness.ppo)
+    networks = make_networks(env, fitness.ppo)
+    policy = make_deterministic_policy(networks)
 
     @jax.jit
     def episode(key, morph, params):
@@ -84,7 +86,7 @@ def _make_episode_fn(space, fitness):
         _, out = jax.lax.scan(step, first, length=fitness.task.episode_length)
         return out + (first.data.qpos,)
 
-    return episode, env.dt
+    return episode, env.dt, make_init(env, networks, fitness.with_controllers(1).ppo)
 
 
 def replay(saved: SavedController, key: jax.Array | None = None, controller: int = 0) -> Replay:
@@ -104,7 +106,7 @@ def replay(saved: SavedController, key: jax.Array | None = None, controller: int
     if k > 1:
         params = jax.tree.map(lambda x: x[controller], params)
     key = jax.random.PRNGKey(saved.seed) if key is None else key
-    episode, dt = _episode_fn(saved.space, saved.fitness)
+    episode, dt, _ = _episode_fn(saved.space, saved.fitness)
     qpos, reward, done, terminated, qpos0 = jax.device_get(episode(key, saved.morph, params))
     ended = np.flatnonzero(done)
     length = int(ended[0]) + 1 if len(ended) else len(done)
@@ -116,8 +118,7 @@ def replay(saved: SavedController, key: jax.Array | None = None, controller: int
 def lower_replay(space, fitness):
     """The program `replay` compiles for a controller of the `fitness` config on `space`,
     lowered for compiling ahead (`warmup`)."""
-    episode, _ = _episode_fn(space, fitness)
-    init, _ = ppo.make_train(space, fitness.task, fitness.with_controllers(1).ppo)
+    episode, _, init = _episode_fn(space, fitness)
     key = jax.ShapeDtypeStruct((2,), jnp.uint32)
     strong = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype)  # noqa: E731 (as read from disk)
     params = jax.tree.map(strong, jax.eval_shape(init, key))
