@@ -50,13 +50,13 @@ class RunConfig:
     confirm_controllers: int = 4  # fresh evaluations (controllers) per confirmed body
 
 
-def default_task(cfg: RunConfig) -> str:
+def default_task(cfg: RunConfig, space: Space) -> str:
     """The task of a run that names none: the table's own for the table fitness (its results
     were trained under it), else "walk"."""
     if cfg.fitness == "table":
         from evojax_morph.fitnesses import table
 
-        return table.task_of(table.table_path(make_space(cfg.space), cfg))
+        return table.task_of(table.table_path(space, cfg))
     return "walk"
 
 
@@ -79,7 +79,7 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     (`agents.config_for_run`).
     """
     space = make_space(cfg.space)
-    fit_cfg = FitnessConfig(kind=cfg.fitness, task=make_task(cfg.task or default_task(cfg)),
+    fit_cfg = FitnessConfig(kind=cfg.fitness, task=make_task(cfg.task or default_task(cfg, space)),
                             ppo=standard_ppo(cfg.train_steps, cfg.controllers),
                             classifier=cfg.classifier, physics=cfg.physics, table=cfg.table,
                             classes=cfg.classes)
