@@ -25,8 +25,9 @@ def space(request):
 # two 4-device subprocesses, one test a file, start together on both workers, then the toy
 # reproduce run, the full MuJoCo C equivalence and the experiment smokes (test_search.py).
 FIRST = ("test_sharding.py", "test_sharding_run.py", "test_reproduce.py", "test_physics.py",
-         "test_agent.py", "test_fitness.py", "test_search.py", "test_tame.py", "test_spaces.py",
-         "test_table.py", "test_render.py", "test_warp.py", "test_cli.py", "test_confirm.py")
+         "test_agent.py", "test_fitness.py", "test_crawler.py", "test_search.py", "test_tame.py",
+         "test_spaces.py", "test_table.py", "test_render.py", "test_warp.py", "test_cli.py",
+         "test_tasks.py", "test_classes.py", "test_confirm.py")
 
 
 def pytest_collection_modifyitems(config, items):
