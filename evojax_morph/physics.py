@@ -12,8 +12,9 @@ A space describes its bodies in two parts:
 `evojax_morph.mjcf.write_mjcf` turns a plan and a layout into MJCF: with every slot (the padded
 template) or with the active slots alone (the export, which MuJoCo compiles by itself and so
 serves as the independent reference). `specialise` turns the template `mjx.Model` into the
-model of one morphology by overwriting numeric fields only, and recomputes every derived
-constant that the MuJoCo compiler would have computed for the unpadded body.
+model of one morphology by overwriting numeric fields only (the capsules' frames, masses and
+inertias from `evojax_morph.capsules`), and recomputes every derived constant that the MuJoCo
+compiler would have computed for the unpadded body.
 
 How an inactive slot is made inert:
   * its geoms get zero mass and a contact margin of -1e3: MJX adds the margins of both geoms and
