@@ -25,6 +25,7 @@ import evojax_morph as em
 from evojax_morph import physics
 from evojax_morph import warp as ew
 from evojax_morph.physics import mjx
+from evojax_morph.spaces import crawler as cr
 
 BODIES, ENVS, STEPS = 3, 2, 5
 WARP_OK, WARP_REASON = ew.available()
@@ -36,6 +37,22 @@ requires_warp = pytest.mark.skipif(not WARP_OK, reason=f"MuJoCo Warp: {WARP_REAS
 # (2026-11-26) the JAX impl's float32 differs more: 8.4e-5 (Constructor), under 3e-6 (the
 # others); 12x that there.
 WARP_TOL = 3e-6 if jax.default_backend() == "cpu" else 1e-3
+# The tests that step Warp also step the 3D Crawler (they are skipped where MuJoCo Warp is
+# missing, as in CI, so it costs the default set nothing).
+warp_spaces = pytest.mark.parametrize(
+    "space", ["bad_walker", "constructor", "length_walker", "crawler"], indirect=True)
+
+
+class _ConvergedCrawler(cr.Crawler):
+    """The Crawler with its contact solves run to convergence. Its legs touch the floor from
+    the first step, and at the shipped 4 Newton iterations the JAX impl's elliptic-cone solve
+    is far from converged there: 0.15 rad from 50 iterations' joint angles after one step,
+    where Warp's (same settings) is 0.005 away (CPU, these 3 bodies x 2 envs, 2026-11-27). So
+    the engines can agree only where both converge: 2.1e-4 apart over 5 steps (CPU)."""
+
+    @functools.cached_property
+    def plan(self):
+        return dataclasses.replace(super().plan, iterations=50, ls_iterations=50)
 
 
 @functools.cache  # the tests of a space share its bodies and their one specialisation program
@@ -134,7 +151,11 @@ def test_unavailable_warp_is_a_clear_error(monkeypatch):
 
 
 @requires_warp
+@warp_spaces
 def test_warp_flat_batch_agrees_with_jax_per_world(space):
+    tol = WARP_TOL
+    if space.name == "crawler":  # 5x the CPU's 2.1e-4 (above)
+        space, tol = _ConvergedCrawler(), 1e-3
     models = _bodies(space)
     ctrl = _controls(space)
     expected = np.asarray(_nested_jax(space, models, ctrl))  # (STEPS, B, E, nq)
@@ -148,7 +169,7 @@ def test_warp_flat_batch_agrees_with_jax_per_world(space):
 
     got = np.asarray(jax.jit(lambda d, c: jax.lax.scan(body, d, c)[1])(data, ctrl))
     error = np.abs(got - expected).max()
-    assert error < WARP_TOL, error
+    assert error < tol, error
 
     # Each world reads its own body: had world w = b * E + e read body w % B (the nested-vmap
     # bug), it would follow that body's trajectory (same start, same controls), which is far
@@ -156,7 +177,17 @@ def test_warp_flat_batch_agrees_with_jax_per_world(space):
     wrong_body = np.arange(BODIES * ENVS).reshape(BODIES, ENVS) % BODIES
     buggy = expected[:, wrong_body, np.arange(ENVS)[None, :]]
     moved = np.abs(buggy - expected).max(axis=(0, 3))  # (B, E)
-    assert (moved[wrong_body != np.arange(BODIES)[:, None]] > 10 * WARP_TOL).all(), moved
+    assert (moved[wrong_body != np.arange(BODIES)[:, None]] > 10 * tol).all(), moved
+
+
+def _same(space, got, want, name):
+    """Bit for bit; but on a GPU, Warp orders contacts by thread timing, and the Crawler's legs
+    touch the floor from the first step (the planar bodies start in the air): 1.2e-7 apart
+    there on an H100, so within WARP_TOL."""
+    if jax.default_backend() == "cpu" or space.name != "crawler":
+        np.testing.assert_array_equal(got, want, err_msg=name)
+    else:
+        np.testing.assert_allclose(got, want, atol=WARP_TOL, err_msg=name)
 
 
 def _step_n(model, data, ctrl):
@@ -168,6 +199,7 @@ def _step_n(model, data, ctrl):
 
 
 @requires_warp
+@warp_spaces
 def test_steps_in_one_warp_call_equal_one_call_a_step(space, monkeypatch):
     """`steps(model, data, 4)` runs the 4 physics steps in one call into Warp (one shim, its own
     Warp callable) and lands on the same state, bit for bit, as 4 calls of one step; the
@@ -187,7 +219,7 @@ def test_steps_in_one_warp_call_equal_one_call_a_step(space, monkeypatch):
     for _ in range(4):
         want = jax.jit(single)(model, want)
     for name in ("qpos", "qvel", "qacc_warmstart", "time"):
-        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+        _same(space, getattr(got, name), getattr(want, name), name)
     assert np.abs(np.asarray(got.qpos) - np.asarray(data.qpos)).max() > 1e-4  # it moved
     assert calls(fused) == calls(single) == (1, False)
     monkeypatch.setenv("EVOJAX_MORPH_WARP_FUSE", "0")
@@ -203,6 +235,7 @@ def test_steps_in_one_warp_call_equal_one_call_a_step(space, monkeypatch):
 
 
 @requires_warp
+@warp_spaces
 def test_plain_solver_loop_steps_as_mjxs_conditional(space, monkeypatch):
     """`put_model` runs the solver's iterations as a plain loop, not MJX's CUDA graph
     conditional that stops once every world has converged (3-7% faster on an H100): a world
@@ -243,13 +276,32 @@ def test_stream_registrations_are_counted(monkeypatch):
     assert calls[2:] == [("out", 7), ("in", 7)]
 
 
+def _every_crawler_limb(space, key):
+    """The Crawler with all 18 limbs, then 20 random length and axis changes."""
+    m = space.initial()
+    for site in range(cr.NUM_SITES):
+        m = space.mutate(m, 0, cr.ADD[site])
+        for depth in (1, 2):
+            m = space.mutate(m, 1 + 3 * site + depth - 1, cr.EXTEND)
+    nodes, kinds = jax.random.split(key)
+    changes = (cr.SHORTER, cr.LONGER, cr.FLIP)
+    for node, kind in zip(jax.random.randint(nodes, (20,), 1, space.max_nodes),
+                          jax.random.randint(kinds, (20,), 0, len(changes))):
+        m = space.mutate(m, node, jnp.asarray(changes)[kind])
+    return m
+
+
 @requires_warp
+@warp_spaces
 def test_buffers_hold_what_the_largest_bodies_need(space):
     """`buffers(space)` bounds contacts and constraint rows per world: random bodies of the
     space's full size (its most active capsules), stepped with 4x the room and dropped onto
     the floor, never need more; and with the bounds as given they step exactly alike."""
     keys = jax.random.split(jax.random.PRNGKey(3), 16)
-    morphs = jax.vmap(space.random_morphology, (0, None))(keys, 4 * space.default_horizon)
+    if space.name == "crawler":  # random walks stay far from its 18 limbs: grow them all
+        morphs = jax.vmap(lambda k: _every_crawler_limb(space, k))(keys)
+    else:
+        morphs = jax.vmap(space.random_morphology, (0, None))(keys, 4 * space.default_horizon)
     capsules = np.asarray(jax.vmap(space.layout)(morphs).geom_active).sum(1)
     assert capsules.max() <= space.max_nodes and capsules.max() >= space.max_nodes - 1, capsules
     models = jax.jit(jax.vmap(space.mjx_model))(morphs)
@@ -276,6 +328,7 @@ def test_buffers_hold_what_the_largest_bodies_need(space):
 
 
 @requires_warp
+@warp_spaces
 def test_where_worlds_selects_all_a_step_reads(space):
     """Worlds reset with `where_worlds` (the state fields alone) step exactly as worlds whose
     every per-world field was selected: the next step recomputes the rest."""
@@ -301,7 +354,7 @@ def test_where_worlds_selects_all_a_step_reads(space):
     full, _ = _step_n(model, full, ctrl)
     slim, _ = _step_n(model, slim, ctrl)
     for name in ew.STATE_FIELDS:
-        np.testing.assert_array_equal(getattr(slim, name), getattr(full, name), err_msg=name)
+        _same(space, getattr(slim, name), getattr(full, name), name)
 
 
 @requires_warp
