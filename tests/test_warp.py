@@ -44,11 +44,12 @@ warp_spaces = pytest.mark.parametrize(
 
 
 class _ConvergedCrawler(cr.Crawler):
-    """The Crawler with its contact solves run to convergence. Its legs touch the floor from
-    the first step, and at the shipped 4 Newton iterations the JAX impl's elliptic-cone solve
-    is far from converged there: 0.15 rad from 50 iterations' joint angles after one step,
-    where Warp's (same settings) is 0.005 away (CPU, these 3 bodies x 2 envs, 2026-11-27). So
-    the engines can agree only where both converge: 2.1e-4 apart over 5 steps (CPU)."""
+    """The Crawler with its contact solves run to convergence. These tests start every body at
+    the template's qpos0, where the Crawler's legs reach into the floor (the task starts each
+    at its own height); at the shipped 4 Newton iterations the two engines' solves of that
+    start part at once: the JAX impl's joint angles are 0.15 rad from 50 iterations' after one
+    step, Warp's 0.005 (CPU, these 3 bodies x 2 envs, 2026-11-27). Converged, they agree to
+    2.1e-4 over 5 steps (CPU)."""
 
     @functools.cached_property
     def plan(self):
@@ -182,8 +183,8 @@ def test_warp_flat_batch_agrees_with_jax_per_world(space):
 
 def _same(space, got, want, name):
     """Bit for bit; but on a GPU, Warp orders contacts by thread timing, and the Crawler's legs
-    touch the floor from the first step (the planar bodies start in the air): 1.2e-7 apart
-    there on an H100, so within WARP_TOL."""
+    touch the floor from the first step here (the planar bodies start in the air): 1.2e-7
+    apart there on an H100, so within WARP_TOL."""
     if jax.default_backend() == "cpu" or space.name != "crawler":
         np.testing.assert_array_equal(got, want, err_msg=name)
     else:
