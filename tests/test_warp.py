@@ -282,8 +282,8 @@ def _every_crawler_limb(space, key):
     m = space.initial()
     for site in range(cr.NUM_SITES):
         m = space.mutate(m, 0, cr.ADD[site])
-        for depth in (1, 2):
-            m = space.mutate(m, 1 + 3 * site + depth - 1, cr.EXTEND)
+        for depth in (1, 2):  # node 3 s + d: the limb at depth d of the chain at site s
+            m = space.mutate(m, 3 * site + depth, cr.EXTEND)
     nodes, kinds = jax.random.split(key)
     changes = (cr.SHORTER, cr.LONGER, cr.FLIP)
     for node, kind in zip(jax.random.randint(nodes, (20,), 1, space.max_nodes),
