@@ -79,7 +79,8 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     (`agents.config_for_run`).
     """
     space = make_space(cfg.space)
-    fit_cfg = FitnessConfig(kind=cfg.fitness, task=make_task(cfg.task or default_task(cfg, space)),
+    task = cfg.task or default_task(cfg, space)
+    fit_cfg = FitnessConfig(kind=cfg.fitness, task=make_task(task),
                             ppo=standard_ppo(cfg.train_steps, cfg.controllers),
                             classifier=cfg.classifier, physics=cfg.physics, table=cfg.table,
                             classes=cfg.classes)
