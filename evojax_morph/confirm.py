@@ -76,6 +76,7 @@ def confirm(
     cfg: FitnessConfig,
     controllers: int,
     mesh=None,
+    ranked: bool = True,
 ) -> list[Confirmed]:
     """Each body evaluated `controllers` times afresh, in one batched fitness call.
 
@@ -94,8 +95,10 @@ def confirm(
       cfg: the fitness.
       controllers: C >= 2 evaluations per body.
       mesh: the devices to split the N x C batch across (default: all).
+      ranked: sort the results by mean; False: in the order of `morphs`.
     Returns:
-      N `Confirmed`, best mean first (equal means in the order of `morphs`).
+      N `Confirmed`, best mean first (equal means in the order of `morphs`), or in the order
+      of `morphs`.
     """
     if controllers < 2:
         raise ValueError(f"confirm needs at least 2 controllers per body, got {controllers}")
@@ -120,4 +123,5 @@ def confirm(
             distance=distance[i],
             upright=upright[i],
         ))
-    return sorted(found, key=lambda c: -c.mean)  # stable: ties keep the order of `morphs`
+    # stable: ties keep the order of `morphs`
+    return sorted(found, key=lambda c: -c.mean) if ranked else found

@@ -21,6 +21,7 @@ from evojax_morph.morphology import Morphology, tree_select
 from evojax_morph.spaces import Space
 
 NEG = -1e9  # the score of a masked action: large and finite, never -inf
+REMEASURE = -1  # an action outside the mask: no mutation, the body evaluated again
 
 
 @struct.dataclass
@@ -80,11 +81,17 @@ class EvolutionEnv:
     def step(self, key: jax.Array, state: EvoState, action: jax.Array):
         """Mutate every env's body, evaluate the children in one batch.
 
+        An env whose action is `REMEASURE` keeps its body: its child is the same body evaluated
+        again (its controller trained further, for the PPO fitness). Only the baselines' own
+        selection asks for it; a learning agent chooses valid mutations.
+
         Returns (obs, state, reward, terminated, truncated, info); an env whose episode ended
         is not reset here: `auto_reset` does that, so a caller can see the final state.
         """
         nm = self.space.num_mutations
-        child = jax.vmap(self.space.mutate)(state.morph, action // nm, action % nm)
+        valid = jnp.maximum(action, 0)
+        mutated = jax.vmap(self.space.mutate)(state.morph, valid // nm, valid % nm)
+        child = tree_select(action == REMEASURE, state.morph, mutated)
         out = self.fitness_fn(jax.random.split(key, self.num_envs), child, state.params)
         new = self._evaluated(child, out, state.steps + 1)
         terminated = new.steps >= self.horizon

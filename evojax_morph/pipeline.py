@@ -32,7 +32,7 @@ class RunConfig:
     task: str = ""  # the locomotion task (`list_tasks`): walk | distance; "": `default_task`
     classifier: str = ""  # tame: directory of the trained classifier
     table: str = ""  # table: the landscape table (.npz); "": the space's packaged one
-    agent: str = "ddqn"  # a registered agent: ddqn | dqn | qrdqn | a2c | random | evolution
+    agent: str = "ddqn"  # a registered agent (`agents.list_agents`)
     steps: int = 40  # environment steps; each mutates every parallel evolution once
     seed: int = 0
     num_envs: int = 4  # parallel evolutions, each step's fitness batch
@@ -44,6 +44,8 @@ class RunConfig:
     hidden: int = 64  # GNN width
     explore_steps: int = 20  # (qr)dqn: environment steps over which epsilon anneals to 0.05
     learning_starts: int = 32  # (qr)dqn: transitions stored before the Q-network learns
+    population: int = 0  # regularized_evolution: members; 0: 4 num_envs
+    tournament: int = 0  # regularized_evolution: members sampled per tournament; 0: population/4
     chunk: int = 5  # environment steps per jitted call
     checkpoint_every: int = 1  # chunks between checkpoints
     confirm: int = 4  # bodies of the highest mean evaluated again at the end; 0: none
@@ -58,6 +60,20 @@ def default_task(cfg: RunConfig, space: Space) -> str:
 
         return table.task_of(table.table_path(space, cfg))
     return "walk"
+
+
+def agent_config(cfg: RunConfig, env: EvolutionEnv) -> Any:
+    """The config of the run's agent that its settings give it (None for an agent without
+    settings), its defaults resolved (`agents.config_for_run`)."""
+    run = RunOptions(
+        hidden=cfg.hidden,
+        reward_scale=1.0 / get_fitness(cfg.fitness).scale(env.space),
+        explore_steps=cfg.explore_steps,
+        learning_starts=cfg.learning_starts,
+        population=cfg.population,
+        tournament=cfg.tournament,
+    )
+    return agents.config_for_run(cfg.agent, env, run)
 
 
 class Pipeline(NamedTuple):
@@ -87,14 +103,7 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     init_fn, fitness_fn = make_fitness_fn(space, fit_cfg, mesh)
     horizon = cfg.horizon or space.default_horizon
     env = EvolutionEnv(space, fitness_fn, init_fn, horizon=horizon, num_envs=cfg.num_envs)
-    if agent_cfg is None:
-        run = RunOptions(
-            hidden=cfg.hidden,
-            reward_scale=1.0 / get_fitness(cfg.fitness).scale(space),
-            explore_steps=cfg.explore_steps,
-            learning_starts=cfg.learning_starts,
-        )
-        agent_cfg = agents.config_for_run(cfg.agent, env, run)
+    agent_cfg = agent_config(cfg, env) if agent_cfg is None else agent_cfg
     agent = agents.make_agent(cfg.agent, env, agent_cfg, mesh)
     # One body a call: the greedy rollout runs on one device of this process, a program with
     # no cross-device communication (split over 2 GPUs with Warp it hung, docs/benchmarks.md).

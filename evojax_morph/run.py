@@ -306,14 +306,20 @@ def add_agent_flags(group, defaults: RunConfig) -> None:
         choices=agents.list_agents(),
         help="who chooses the mutations: ddqn (Double-DQN), dqn (plain DQN), qrdqn "
         "(quantile-regression DQN), a2c (actor-critic), or the baselines "
-        "random (random mutation walks) and evolution (a population, random mutations, the "
-        "fittest survive)",
+        "random (random mutation walks), evolution ((mu + lambda), its survivors evaluated "
+        "again every step and ranked by their mean) and regularized_evolution (aging "
+        "evolution: tournaments pick the parents, each child replaces the oldest member)",
     )
     add("--hidden", type=int, default=defaults.hidden, help="width of the agent's GNN")
     add("--explore-steps", type=int, default=defaults.explore_steps,
         help="ddqn, dqn, qrdqn: environment steps of epsilon annealing")
     add("--learning-starts", type=int, default=defaults.learning_starts,
         help="ddqn, dqn, qrdqn: transitions stored before learning")
+    add("--population", type=int, default=defaults.population,
+        help="regularized_evolution: members, at least --num-envs (0: 4 x --num-envs)")
+    add("--tournament", type=int, default=defaults.tournament,
+        help="regularized_evolution: members sampled per tournament, 1 to --population "
+        "(0: a quarter of the population)")
 
 
 def add_confirm_flags(group, defaults: RunConfig) -> None:
@@ -362,6 +368,9 @@ def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
             parser.error(f"--{name.replace('_', '-')} must be positive, got {value}")
     if args.horizon < 0:
         parser.error("--horizon must be >= 0")
+    problem = agents.settings_problem(args.agent, args.num_envs, args.population, args.tournament)
+    if problem:
+        parser.error(problem)
     if args.confirm < 0:
         parser.error("--confirm must be >= 0 (0: no confirm stage)")
     if args.confirm_controllers < 2:

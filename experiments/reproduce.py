@@ -32,6 +32,7 @@ import json
 import pickle
 import sys
 import time
+import zlib
 from pathlib import Path
 
 import jax
@@ -41,7 +42,7 @@ import scipy.stats
 import evojax_morph as em
 from evojax_morph import plots
 from evojax_morph.confirm import t_interval
-from evojax_morph.pipeline import NO_OP, build, make_greedy_rollout
+from evojax_morph.pipeline import NO_OP, agent_config, build, make_greedy_rollout
 from experiments.build_tables import revision
 from experiments.common import Setup, band, episode_returns, plt, run_agent, run_config, save
 
@@ -61,19 +62,19 @@ class Group:
     chunk: int = 8
 
 
+COMPARED = ("a2c", "ddqn", "evolution", "regularized_evolution", "random")
 GROUPS = {  # at least the evaluations per run and seeds the issue asks for
     "fig6_h20": Group("bad_walker", "ddqn", 64, 160, hidden=20),  # 10,240 evaluations a run
     "fig6_h100": Group("bad_walker", "ddqn", 64, 160, hidden=100),
     "fig8": Group("constructor", "a2c", 256, 160),  # 40,960
-    **{f"compare_{a}": Group("constructor", a, 128, 160)  # 20,480
-       for a in ("a2c", "ddqn", "evolution", "random")},
+    **{f"compare_{a}": Group("constructor", a, 128, 160) for a in COMPARED},  # 20,480
 }
 # The walking task's comparison (issue 44): 10 seeds a method at 50,000 PPO steps, where it
 # separates Constructor bodies (results.md, "Bodies that walk"); 1,024 evaluations a run (32
 # evolutions x 4 episodes of 8) fit 40 runs into 30 GPU-minutes. Drawn as compare_constructor_walk.
 WALK_TRAIN_STEPS, WALK_DATA = 50_000, Path("docs/figures/reproduce_walk")
 WALK_GROUPS = {f"compare_{a}": Group("constructor", a, 32, 32, seeds=10, chunk=4)
-               for a in ("a2c", "ddqn", "evolution", "random")}
+               for a in COMPARED}
 UNROLLS = {"fig5": "fig6_h100", "fig7": "fig8"}  # a figure of greedy unrolls: its agents' group
 STAGES = {  # a stage runs these groups and unrolls in turn; each group is a stage too
     "fig6_h20": ["fig6_h20"], "fig6_h100": ["fig6_h100"], "fig5": ["fig5"], "fig8": ["fig8"],
@@ -109,17 +110,22 @@ def record(g: Group, args, seconds: float, **data) -> dict:
     }
 
 
+def group_key(base: int, name: str) -> jax.Array:
+    """A group's own confirming key: `base` with the group's name folded in, so that no two
+    groups (nor two runs of a group: each body takes its own splits) share a measurement."""
+    return jax.random.fold_in(jax.random.PRNGKey(base), zlib.crc32(name.encode()))
+
+
 def confirm(space, morphs: list, key, args) -> list[dict]:
-    """`em.confirm` of each body (once per distinct body), in the order of `morphs`."""
-    distinct = {space.canonical(m): m for m in morphs}
+    """`em.confirm` of each body in the order of `morphs`, each with keys of its own: equal
+    bodies of two runs are measured apart (before issue 60 they shared one measurement)."""
     cfg = em.FitnessConfig(kind="ppo", task=em.make_task(args.task), physics=args.physics,
                            ppo=em.standard_ppo(args.train_steps, 1))
-    found = em.confirm(space, em.stack(list(distinct.values())), key, cfg, args.confirm_controllers)
-    by_name = {c.body: {"body": c.body, "mean": c.mean, "ci95": list(c.ci95),
-                        "controllers": len(c.values), "distance": float(c.distance.mean()),
-                        "upright": float(c.upright.mean()), "upright_whole": c.upright_whole}
-               for c in found}
-    return [by_name[space.canonical(m)] for m in morphs]
+    found = em.confirm(space, em.stack(list(morphs)), key, cfg, args.confirm_controllers,
+                       ranked=False)
+    return [{"body": c.body, "mean": c.mean, "ci95": list(c.ci95), "controllers": len(c.values),
+             "distance": float(c.distance.mean()), "upright": float(c.upright.mean()),
+             "upright_whole": c.upright_whole} for c in found]
 
 
 def run_group(name: str, g: Group, args, deadline: float) -> bool:
@@ -140,8 +146,11 @@ def run_group(name: str, g: Group, args, deadline: float) -> bool:
     }
     if "entropy" in m:
         data["entropy"] = m["entropy"].reshape(len(m["entropy"]), g.seeds, -1).mean(-1).tolist()
+    settings = agent_config(run_config(g.agent, setup_of(g, args)), res["pipeline"].env)
+    data["agent_settings"] = dataclasses.asdict(settings) if settings is not None else {}
     if name.startswith("compare_"):  # each run's returned body (its best single draw), confirmed
-        data["returned"] = confirm(space, res["best_bodies"], jax.random.PRNGKey(11), args)
+        data["returned"] = confirm(space, res["best_bodies"], group_key(11, name), args)
+        data["confirm_keys"] = f"fold_in(PRNGKey(11), crc32({name!r})), a split a controller"
         data["returned_draw"] = res["best_fitness"].tolist()
     if name in UNROLLS.values():  # the trained agents, for the unroll figure
         keep = {"learner": res["states"].learner, "first": res["states"].first}
@@ -171,7 +180,7 @@ def unroll(name: str, of: str, args) -> bool:
                                                                trained["first"]))
         unrolls.append(rollout(learner, first, jax.random.PRNGKey(100 + seed)))
     morphs = [m for u in unrolls for m in u.morphs]
-    confirmed = iter(confirm(p.space, morphs, jax.random.PRNGKey(12), args))
+    confirmed = iter(confirm(p.space, morphs, group_key(12, name), args))
     data = {"unrolls": [{"actions": u.actions,
                          "bodies": [next(confirmed) for _ in u.morphs],
                          "inherited_fitness": u.fitness} for u in unrolls],

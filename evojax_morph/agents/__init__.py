@@ -15,7 +15,6 @@ learns), and a line in `_REGISTRY`.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -29,6 +28,7 @@ class AgentKind(NamedTuple):
 
     config: type | None
     make_policy: Callable  # make_policy(env, cfg) -> Policy
+    check: Callable | None = None  # check(num_envs, population, tournament): ValueError if not
 
 
 _REGISTRY: dict[str, AgentKind] = {
@@ -36,8 +36,11 @@ _REGISTRY: dict[str, AgentKind] = {
     "dqn": AgentKind(dqn.PlainDQNConfig, dqn.make_policy),
     "qrdqn": AgentKind(qrdqn.QRDQNConfig, qrdqn.make_policy),
     "a2c": AgentKind(a2c.A2CConfig, a2c.make_policy),
-    "random": AgentKind(None, baselines.make_policy),
-    "evolution": AgentKind(None, functools.partial(baselines.make_policy, selection=True)),
+    "random": AgentKind(None, baselines.make_random),
+    "evolution": AgentKind(None, baselines.make_evolution, baselines.check_evolution),
+    "regularized_evolution": AgentKind(baselines.RegularizedEvolutionConfig,
+                                       baselines.make_regularized_evolution,
+                                       baselines.check_regularized_evolution),
 }
 
 
@@ -50,6 +53,19 @@ def _kind(name: str) -> AgentKind:
     if name not in _REGISTRY:
         raise ValueError(f"unknown agent {name!r}; choose one of {', '.join(_REGISTRY)}")
     return _REGISTRY[name]
+
+
+def settings_problem(name: str, num_envs: int, population: int = 0,
+                     tournament: int = 0) -> str | None:
+    """Why agent `name` cannot run `num_envs` evolutions with these settings (None: it can),
+    checked before anything compiles."""
+    check = _kind(name).check
+    try:
+        if check is not None:
+            check(num_envs, population, tournament)
+    except ValueError as e:
+        return str(e)
+    return None
 
 
 def config_for_run(name: str, env: EvolutionEnv, run: RunOptions) -> Any:
@@ -84,6 +100,7 @@ __all__ = [
     "RunOptions",
     "Transition",
     "config_for_run",
+    "settings_problem",
     "from_policy",
     "list_agents",
     "make_agent",

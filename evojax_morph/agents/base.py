@@ -41,6 +41,8 @@ class RunOptions(NamedTuple):
     reward_scale: float  # rewards are multiplied by this before learning
     explore_steps: int  # environment steps of exploration (ddqn: epsilon's annealing)
     learning_starts: int  # transitions stored before learning (ddqn)
+    population: int = 0  # regularized_evolution: members (0: its default)
+    tournament: int = 0  # regularized_evolution: members sampled per tournament (0: default)
 
 
 class Transition(NamedTuple):
@@ -61,26 +63,29 @@ def bodies(parents: EvoState, children: EvoState) -> dict:
             "distance": children.distance, "upright": children.upright}
 
 
-def _restart(env: EvolutionEnv, parents: EvoState, children: EvoState, first: EvoState, done):
-    del parents
-    return env.auto_reset(children, first, done)
+def _restart(env: EvolutionEnv, learner, keys, parents: EvoState, children: EvoState,
+             first: EvoState, done):
+    del keys, parents
+    return learner, env.auto_reset(children, first, done)
 
 
 class Policy(NamedTuple):
     """How one agent acts and learns; `from_policy` supplies everything else.
 
-    keys: PRNG keys taken by (init, act, learn) each call, split off the agent's key in one
-      call (init: [init keys..., env, next]; step: [next, act keys..., env, learn keys...]).
+    keys: PRNG keys taken by (init, act, learn[, next_evo]) each call, split off the agent's
+      key in one call (init: [init keys..., env, next]; step: [next, act keys..., env, learn
+      keys..., next_evo keys...]).
     init(keys, obs) -> learner: the agent's own state, from the first (N, ...) observation.
     act(learner, keys, obs, step) -> (action (N,) int32, metrics): valid actions only.
     learn(learner, keys, transition, step) -> (learner, metrics).
     scores(learner, obs) -> (N, num_actions): whose masked argmax is the greedy action; None
       for an agent without a policy to roll out.
-    next_evo(env, parents, children, first, done) -> the bodies the next step mutates
-      (default: the children, with ended episodes restarted at `first`).
+    next_evo(env, learner, keys, parents, children, first, done) -> (learner, the bodies the
+      next step mutates); default: the children, with ended episodes restarted at `first`.
+      The baselines select here (a population kept in `learner`).
     """
 
-    keys: tuple[int, int, int]
+    keys: tuple[int, ...]
     init: Callable
     act: Callable
     learn: Callable
@@ -102,7 +107,7 @@ class Agent(NamedTuple):
 def from_policy(env: EvolutionEnv, policy: Policy, mesh=None) -> Agent:
     """The jitted agent of `policy` on `env`, its state replicated on `mesh` (default: every
     device; the fitness inside splits its batch across them)."""
-    n_init, n_act, n_learn = policy.keys
+    n_init, n_act, n_learn, n_next = (*policy.keys, 0)[:4]
 
     def init(key: jax.Array) -> AgentState:
         keys = jax.random.split(key, n_init + 2)
@@ -112,8 +117,9 @@ def from_policy(env: EvolutionEnv, policy: Policy, mesh=None) -> Agent:
                           *track_best(evo))
 
     def env_step(state: AgentState, _):
-        keys = jax.random.split(state.key, n_act + n_learn + 2)
-        key_act, key_env, key_learn = keys[1 : 1 + n_act], keys[1 + n_act], keys[2 + n_act :]
+        keys = jax.random.split(state.key, n_act + n_learn + n_next + 2)
+        key_act, key_env = keys[1 : 1 + n_act], keys[1 + n_act]
+        key_learn, key_next = jnp.split(keys[2 + n_act :], [n_learn])
 
         # ACT on valid actions only
         obs = env.observe(state.evo)
@@ -123,11 +129,12 @@ def from_policy(env: EvolutionEnv, policy: Policy, mesh=None) -> Agent:
         next_obs, children, reward, terminated, truncated, _ = env.step(key_env, state.evo, action)
         best = track_best(children, (state.best_fitness, state.best_morph, state.best_params))
         done = terminated | truncated
-        evo = policy.next_evo(env, state.evo, children, state.first, done)
+        learner, evo = policy.next_evo(env, state.learner, key_next, state.evo, children,
+                                       state.first, done)
 
         # LEARN
         transition = Transition(obs, action, reward, next_obs, terminated, done)
-        learner, learn_metrics = policy.learn(state.learner, key_learn, transition, state.step)
+        learner, learn_metrics = policy.learn(learner, key_learn, transition, state.step)
         new = AgentState(learner, evo, state.first, keys[0], state.step + 1, *best)
         metrics = {"reward": reward, "fitness": children.fitness, "best_fitness": best[0]}
         metrics["bodies"] = bodies(state.evo, children)
