@@ -38,6 +38,7 @@ import argparse
 import dataclasses
 import json
 import time
+import zlib
 from pathlib import Path
 
 import jax
@@ -49,15 +50,16 @@ import evojax_morph as em
 from evojax_morph.agents import list_agents
 from evojax_morph.fitnesses import FitnessConfig
 from evojax_morph.fitnesses import table as table_fitness
-from evojax_morph.pipeline import RunConfig, build
+from evojax_morph.pipeline import RunConfig, agent_config, build
 from evojax_morph.spaces import make_space
 from experiments.common import band, save
 
 RL = ("ddqn", "dqn", "qrdqn", "a2c")
-RULES = ("draw", "confirmed")  # what a run returns: see the module's docstring
-BASELINES = ("evolution", "random")
+RULES = ("draw", "confirmed", "confirmed_early")  # what a run returns: the module's docstring
+BASELINES = ("regularized_evolution", "evolution", "random")
 BOOT = 10_000  # bootstrap resamples
 CONFIRM_SEED = 1_000_003  # the confirming draws' key (the runs use PRNGKey(0))
+EARLY = 2_000  # evaluations a run at which the confirmed rule is also taken
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,6 +75,8 @@ class Settings:
     seeds: int = 10
     confirm: int = 8  # the confirmed rule: bodies re-evaluated at the end of a run
     confirm_draws: int = 32  # results drawn from the table for each
+    agent_settings: str = ""  # JSON: {method: {field: value}} over its config (tuning)
+    tag: str = ""  # appended to the data file's name (a tuning variant's)
 
 
 def rows_fn(sigs: np.ndarray):
@@ -91,14 +95,25 @@ def rows_fn(sigs: np.ndarray):
     return rows
 
 
-def confirm_rows(visits, sums, s: Settings, space, table, cfg) -> tuple[np.ndarray, np.ndarray]:
+def confirm_keys(method: str, k: int, evaluations: int, seeds: int) -> jax.Array:
+    """(seeds,) keys of each run's confirmation, its own: the method, K, the budget and the
+    seed folded into CONFIRM_SEED, so no two runs share a measurement of a body."""
+    key = jax.random.PRNGKey(CONFIRM_SEED)
+    for part in (zlib.crc32(method.encode()), k, evaluations):
+        key = jax.random.fold_in(key, part)
+    return jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(seeds))
+
+
+def confirm_rows(visits, sums, s: Settings, space, table, cfg, keys) -> tuple[np.ndarray,
+                                                                             np.ndarray]:
     """The confirmed rule: per seed, the `s.confirm` bodies of the highest mean over the run's
     own evaluations (ties to the more evaluated, then the lower row), each the mean of
     `s.confirm_draws` fresh results drawn from the table (the table fitness at K =
-    confirm_draws, one call for all seeds); the best of them.
+    confirm_draws), with the run's own key (`confirm_keys`); the best of them.
 
     Args:
       visits, sums: (seeds, T) evaluations of each row in each run and their fitness sum.
+      keys: (seeds,) the runs' confirming keys.
     Returns:
       (seeds,) rows returned and (seeds,) their confirming means.
     """
@@ -109,8 +124,10 @@ def confirm_rows(visits, sums, s: Settings, space, table, cfg) -> tuple[np.ndarr
     bodies = jax.tree.map(lambda x: x[cand.reshape(-1)], table.bodies)
     confirm_cfg = dataclasses.replace(cfg, ppo=dataclasses.replace(
         cfg.ppo, controllers=s.confirm_draws))
-    res = em.evaluate(space, bodies, jax.random.PRNGKey(CONFIRM_SEED), confirm_cfg)
-    means = np.asarray(res.fitness).reshape(cand.shape)
+    per_run = jax.tree.map(lambda x: x.reshape(cand.shape + x.shape[1:]), bodies)
+    means = np.stack([np.asarray(em.evaluate(space, jax.tree.map(lambda x, i=i: x[i], per_run),
+                                             key, confirm_cfg).fitness)
+                      for i, key in enumerate(keys)])
     pick = means.argmax(1)
     return cand[np.arange(len(cand)), pick], means[np.arange(len(cand)), pick]
 
@@ -120,7 +137,11 @@ def run_method(method: str, k: int, s: Settings, true: np.ndarray, sigs, table) 
     cfg = RunConfig(space=s.space, fitness="table", table=s.table, agent=method,
                     num_envs=s.num_envs, controllers=k, hidden=s.hidden,
                     explore_steps=s.explore_steps, learning_starts=s.learning_starts)
-    p = build(cfg)
+    env = build(dataclasses.replace(cfg, agent="random")).env
+    agent_cfg = agent_config(cfg, env)
+    overrides = json.loads(s.agent_settings or "{}").get(method, {})
+    agent_cfg = dataclasses.replace(agent_cfg, **overrides) if overrides else agent_cfg
+    p = build(cfg, agent_cfg=agent_cfg)
     rows = rows_fn(sigs)
 
     def step(state, n):
@@ -135,7 +156,12 @@ def run_method(method: str, k: int, s: Settings, true: np.ndarray, sigs, table) 
     fns = {}
     done, curve, seconds, compile_s = 0, [], 0, 0
     visits, sums = np.zeros((s.seeds, len(true)), int), np.zeros((s.seeds, len(true)))
+    early = None  # the confirmed rule at EARLY evaluations a run
     while done < s.steps:
+        if early is None and done * s.num_envs >= EARLY:
+            early = confirm_rows(visits, sums, s, p.space, table, p.fitness,
+                                 confirm_keys(method, k, done * s.num_envs, s.seeds))
+            early = {"evaluations": done * s.num_envs, "rows": early[0].tolist()}
         n = min(s.chunk, s.steps - done)
         if n not in fns:  # compile outside the clock
             start = time.perf_counter()
@@ -151,13 +177,17 @@ def run_method(method: str, k: int, s: Settings, true: np.ndarray, sigs, table) 
         curve.append(true[np.asarray(best_rows)].tolist())
         done += n
     best_rows, top = np.asarray(best_rows), np.argsort(-true)[:5]
-    confirmed, confirmed_mean = confirm_rows(visits, sums, s, p.space, table, p.fitness)
+    confirmed, confirmed_mean = confirm_rows(visits, sums, s, p.space, table, p.fitness,
+                                             confirm_keys(method, k, s.steps * s.num_envs,
+                                                          s.seeds))
     return {
         "true_fitness": true[best_rows].tolist(),  # (seeds,) the returned body's table mean
         "best_rows": best_rows.tolist(),
         "confirmed_true_fitness": true[confirmed].tolist(),  # the same, the confirmed rule
         "confirmed_rows": confirmed.tolist(),
         "confirmed_mean": confirmed_mean.tolist(),  # the confirming draws' mean
+        "confirmed_early": early,  # the confirmed rule's rows at EARLY evaluations a run
+        "agent_settings": dataclasses.asdict(agent_cfg) if agent_cfg is not None else {},
         "in_run_fitness": np.asarray(states.best_fitness).tolist(),  # the draw that chose it
         "best_visited": [float(true[v > 0].max()) for v in visits],  # best body evaluated
         "distinct_bodies": (visits > 0).sum(1).tolist(),
@@ -168,6 +198,15 @@ def run_method(method: str, k: int, s: Settings, true: np.ndarray, sigs, table) 
         "compile_seconds": compile_s,
         "init_seconds": init_s,
     }
+
+
+def returned_rows(r: dict, rule: str) -> list | None:
+    """The table rows of the bodies a method's runs returned under `rule` (None: not kept)."""
+    if rule == "draw":
+        return r["best_rows"]
+    if rule == "confirmed":
+        return r.get("confirmed_rows")
+    return (r.get("confirmed_early") or {}).get("rows")
 
 
 def bootstrap(x: np.ndarray, stat, rng, boot: int = BOOT) -> list[float]:
@@ -198,9 +237,31 @@ def effect(a, b, true, table_means, rng) -> dict:
     tlo, thi = np.quantile(d_table, [0.025, 0.975])
     fa, fb = true[a][:, None], true[b][None]
     beats = np.mean((fa > fb) + 0.5 * (fa == fb))
+    # two-sided bootstrap p of the difference, over seeds and the table's results
+    p = min(1.0, 2 * min(np.mean(d_table <= 0), np.mean(d_table >= 0)) + 1 / len(d_table))
     return {"diff": float(true[a].mean() - true[b].mean()), "ci": [float(lo), float(hi)],
             "significant": bool(lo > 0 or hi < 0), "ci_with_table": [float(tlo), float(thi)],
-            "significant_with_table": bool(tlo > 0 or thi < 0), "p_beats": float(beats)}
+            "significant_with_table": bool(tlo > 0 or thi < 0), "p_beats": float(beats),
+            "p": float(p)}
+
+
+def holm(effects: dict) -> None:
+    """Adds each comparison's Holm-adjusted p ("p_holm") and whether it holds at 5% after the
+    correction ("significant_holm"), over every comparison of `effects` at once."""
+    order = sorted(effects, key=lambda pair: effects[pair]["p"])
+    running = 0.0
+    for i, pair in enumerate(order):
+        running = max(running, min(1.0, (len(order) - i) * effects[pair]["p"]))
+        effects[pair]["p_holm"] = running
+        effects[pair]["significant_holm"] = running < 0.05
+
+
+def pairs(methods) -> list[tuple[str, str]]:
+    """The comparisons: every RL agent against every baseline (plain DQN also against
+    Double-DQN), and the baselines against each other, in that order."""
+    out = [(a, b) for a in RL for b in (*BASELINES, *(("ddqn",) if a == "dqn" else ()))]
+    out += [(a, b) for i, a in enumerate(BASELINES) for b in BASELINES[i + 1:]]
+    return [(a, b) for a, b in out if a in methods and b in methods]
 
 
 def resampled_means(fitness: np.ndarray, rng, boot: int = BOOT) -> np.ndarray:
@@ -233,9 +294,8 @@ def stats(results: dict, fitness: np.ndarray) -> dict:
     for k, by_method in results.items():
         out[k] = {}
         for rule in RULES:
-            prefix = "" if rule == "draw" else "confirmed_"
-            rows = {m: np.asarray(r[prefix + "rows" if prefix else "best_rows"])
-                    for m, r in by_method.items() if prefix + "rows" in r or not prefix}
+            rows = {m: np.asarray(rw) for m, r in by_method.items()
+                    if (rw := returned_rows(r, rule)) is not None}
             by = out[k][rule] = {}
             for m, rw in rows.items():
                 f, r = true[rw], by_method[m]
@@ -251,10 +311,10 @@ def stats(results: dict, fitness: np.ndarray) -> dict:
                     "median_distinct_bodies": float(np.median(r["distinct_bodies"])),
                     "seconds_per_run": r["seconds"] / len(f),
                 }
-            for a in RL:
-                for b in (*BASELINES, *(("ddqn",) if a == "dqn" else ())):
-                    if a in rows and b in rows:
-                        by[f"{a}-{b}"] = effect(rows[a], rows[b], true, table_means, rng)
+            effects = {f"{a}-{b}": effect(rows[a], rows[b], true, table_means, rng)
+                       for a, b in pairs(rows)}
+            holm(effects)
+            by.update(effects)
     return out
 
 
@@ -265,7 +325,7 @@ def table_lines(summary: dict) -> list[str]:
              f"[{gap['ci'][0]:.1f}, {gap['ci'][1]:.1f}], P(first better) "
              f"{gap['p_first_better']:.2f} ({gap['results']} results; each body's resampled); "
              f"{len(st['indistinguishable_from_best'])} bodies indistinguishable from the best",
-             "K  rule      method     median regret [95% CI]    mean regret [95% CI]      "
+             "K  rule            method                median regret [95% CI]    mean regret [95% CI]      "
              "median rank  optimum  tied  s/run"]
     for k in sorted(summary["results"], key=int):
         for rule in RULES:
@@ -276,19 +336,19 @@ def table_lines(summary: dict) -> list[str]:
                 r = by[m]
                 med, mean = r["median_regret"], r["mean_regret"]
                 lines.append(
-                    f"{k:<2} {rule:<9} {m:<10} {med[0]:6.1f} [{med[1]:6.1f}, {med[2]:6.1f}]     "
+                    f"{k:<2} {rule:<15} {m:<21} {med[0]:6.1f} [{med[1]:6.1f}, {med[2]:6.1f}]     "
                     f"{mean[0]:6.1f} [{mean[1]:6.1f}, {mean[2]:6.1f}]     "
                     f"{np.median(r['ranks']):5.1f}     {r['found_optimum']:2d}/{len(r['ranks'])}"
                     f"  {r['indistinguishable']:2d}  {r['seconds_per_run']:6.2f}"
                 )
             for pair, e in by.items():
                 if "-" in pair:
-                    star = "*" if e["significant"] else " "
-                    tstar = "*" if e["significant_with_table"] else " "
+                    star = "*" if e["significant_holm"] else " "
                     lines.append(
-                        f"{k:<2} {rule:<9} {pair:<16} diff {e['diff']:6.1f} "
-                        f"[{e['ci'][0]:6.1f}, {e['ci'][1]:6.1f}]{star} with the table's noise "
-                        f"[{e['ci_with_table'][0]:6.1f}, {e['ci_with_table'][1]:6.1f}]{tstar} "
+                        f"{k:<2} {rule:<15} {pair:<34} diff {e['diff']:6.1f} "
+                        f"[{e['ci'][0]:6.1f}, {e['ci'][1]:6.1f}] with the table's noise "
+                        f"[{e['ci_with_table'][0]:6.1f}, {e['ci_with_table'][1]:6.1f}] "
+                        f"p {e['p']:.4f}, Holm {e['p_holm']:.4f}{star} "
                         f"P(beats) {e['p_beats']:.2f}")
     return lines
 
@@ -309,7 +369,9 @@ def main():
     table, sigs = table_fitness.load(space, FitnessConfig(kind="table", table=s.table))
     true = table.mean()
     out = Path(args.out)
-    name = f"compare_table_{s.space}"
+    name = f"compare_table_{s.space}" + (f"_{Path(s.table).stem.split('_')[-1]}" if s.table
+                                         else "")  # a walking table: _walk
+    name += f"_{s.tag}" if s.tag else ""
     path = out / f"{name}.json"
     summary = {"settings": dataclasses.asdict(s), "task": table.task,
                "evaluations_per_run": s.num_envs * s.steps,
