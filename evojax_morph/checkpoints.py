@@ -4,12 +4,15 @@ that reads (`restore_newest`), the damaged ones moved aside, for `driver`'s --re
 Every checkpoint proves what it holds: beside the agent state it keeps, in the same atomic save,
 the SHA-256 of each array's bytes (`save_args`); a restore recomputes them (`restore_checked`).
 A digest that does not match or is missing, or non-finite values where the state must be finite
-(`FINITE`), make the checkpoint damaged, as one that does not read is.
+(`FINITE`), make the checkpoint damaged, as one that does not read is. Saved controllers and
+confirmed.json carry digests of the same kind (`digests`, `seal`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import json
 import logging
 import sys
 from pathlib import Path
@@ -98,6 +101,30 @@ def restore_checked(manager, step: int, abstract):
     return restored["state"]
 
 
+def seal(record: dict) -> dict:
+    """`record` (JSON) with the SHA-256 of its canonical text under "sha256" (`unseal`)."""
+    body = {k: v for k, v in record.items() if k != "sha256"}
+    text = json.dumps(body, sort_keys=True)
+    return body | {"sha256": hashlib.sha256(text.encode()).hexdigest()}
+
+
+def unseal(record, name: str = "") -> dict:
+    """The `seal`ed `record` without its digest. Raises `Damaged` (its message begins with
+    `name`) where the digest is missing or does not match."""
+    name = f"{name}: " if name else ""
+    if not isinstance(record, dict) or "sha256" not in record:
+        raise Damaged(f"{name}no digest saved")
+    if seal(record)["sha256"] != record["sha256"]:
+        raise Damaged(f"{name}its SHA-256 is not the saved one")
+    return {k: v for k, v in record.items() if k != "sha256"}
+
+
+def read_sealed(path: Path) -> dict:
+    """The record `seal`ed in the JSON file `path`; `Damaged` where it does not read."""
+    with read_error(str(path)):
+        return unseal(json.loads(Path(path).read_text()))
+
+
 DAMAGED = "checkpoints_damaged"  # where damaged checkpoints are moved, under the run
 
 
@@ -109,6 +136,18 @@ def _why(e: Exception) -> str:
     text = str(e).split(" [tensorstore_spec")[0].strip().splitlines()
     text = text[0] if text else ""
     return f"{type(e).__name__}: {text[:300]}"
+
+
+@contextlib.contextmanager
+def read_error(name: str):
+    """Any error of the reads inside raised as `Damaged`, naming `name` (and `_why`)."""
+    try:
+        yield
+    except Damaged as e:
+        raise Damaged(f"{name} is damaged: {e}") from None
+    except Exception as e:
+        _drop_cut_short_reports()
+        raise Damaged(f"{name} does not read ({_why(e)})") from e
 
 
 CUT_SHORT = ("Event loop is closed", "Encountered error while reading array index")

@@ -291,7 +291,7 @@ def _report(run: Run, evolved: Evolved, best: Best, clock: Clock) -> None:
     out, p = run.out, run.p
     if best.top is not None:  # written last: the stage is done, a --resume keeps it
         best.record["best_morphology"] = best.morph.to_dict()
-        (out / "confirmed.json").write_text(json.dumps(best.record, indent=1))
+        (out / "confirmed.json").write_text(json.dumps(checkpoints.seal(best.record), indent=1))
     task = p.fitness.task
     write_results(out, p.space, evolved.rows, best.morph, best.fitness, best.greedy, evolved.step,
                   best.saved, run.gif, best.record, clock.phase,
@@ -372,7 +372,7 @@ def confirm_stage(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print):
     record = {"env_steps": step, "bodies": n, "controllers": c, "confirmed": []}
     done = out / "confirmed.json"
     if done.exists():
-        before = json.loads(done.read_text())
+        before = checkpoints.read_sealed(done)
         if all(before.get(k) == record[k] for k in ("env_steps", "bodies", "controllers")):
             log("confirm: done when the run finished, kept (confirmed.json)")
             return before, None
