@@ -1,12 +1,31 @@
 """A run's Orbax checkpoints: the manager of RUN/checkpoints, and the restore of the newest
-that reads (`restore_newest`), the damaged ones moved aside, for `driver`'s --resume."""
+that reads (`restore_newest`), the damaged ones moved aside, for `driver`'s --resume.
+
+Every checkpoint proves what it holds: beside the agent state it keeps, in the same atomic save,
+the SHA-256 of each array's bytes (`save_args`); a restore recomputes them (`restore_checked`).
+A digest that does not match or is missing, or non-finite values where the state must be finite
+(`FINITE`), make the checkpoint damaged, as one that does not read is. Saved controllers and
+confirmed.json carry digests of the same kind (`digests`, `seal`).
+"""
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import json
+import logging
 import sys
 from pathlib import Path
 
 import jax
+import numpy as np
+
+from evojax_morph.sharding import to_host
+
+# The parts of the agent state that must be finite: the agent's networks, optimiser and memory,
+# and the controllers; a fitness, a distance (NaN: no episode) or the best fitness (-inf at
+# first) may not be.
+FINITE = (".learner", ".evo.params", ".first.params", ".best_params")
 
 
 def checkpoint_manager(out: Path):
@@ -20,35 +39,150 @@ class ResumeError(RuntimeError):
     """No checkpoint of a run directory could be read back."""
 
 
-DAMAGED = "checkpoints_damaged"  # where checkpoints that do not read are moved, under the run
+class Damaged(ValueError):
+    """Saved data that does not prove what it holds: a digest that does not match or is
+    missing, or non-finite values where they must be finite."""
+
+
+def digests(tree) -> dict[str, str]:
+    """The SHA-256 of each array of the host pytree `tree` (its dtype, shape and bytes), by
+    its key path (`jax.tree_util.keystr`)."""
+    found = {}
+    for path, x in jax.tree_util.tree_flatten_with_path(tree)[0]:
+        x = np.ascontiguousarray(x)
+        h = hashlib.sha256(f"{x.dtype.str}{x.shape}".encode())
+        h.update(x.tobytes())
+        found[jax.tree_util.keystr(path)] = h.hexdigest()
+    return found
+
+
+def check(tree, saved: dict | None, finite=("",)) -> None:
+    """Raises `Damaged`, naming the array and the check, unless every array of the host pytree
+    `tree` has the digest `saved` keeps for it (`digests`) and the float arrays whose key path
+    starts with one of `finite` are finite."""
+    if not isinstance(saved, dict):
+        raise Damaged("no digest saved")
+    found = digests(tree)
+    for path in list(found) + [p for p in saved if p not in found]:
+        if path not in saved:
+            raise Damaged(f"{path}: no digest saved")
+        if path not in found:
+            raise Damaged(f"{path}: saved with a digest, not restored")
+        if saved[path] != found[path]:
+            raise Damaged(f"{path}: its SHA-256 is not the saved one")
+    for path, x in jax.tree_util.tree_flatten_with_path(tree)[0]:
+        name, x = jax.tree_util.keystr(path), np.asarray(x)
+        if name.startswith(finite) and x.dtype.kind in "fc" and not np.isfinite(x).all():
+            raise Damaged(f"{name}: non-finite values where they must be finite")
+
+
+def save_args(state):
+    """Orbax's save of the agent `state` with its digest (one atomic step); every process."""
+    import orbax.checkpoint as ocp
+
+    return ocp.args.Composite(state=ocp.args.StandardSave(state),
+                              digest=ocp.args.JsonSave(digests(to_host(state))))
+
+
+def restore_checked(manager, step: int, abstract):
+    """The agent state of checkpoint `step`, restored as `abstract` and checked against its
+    digest (`check`, the `FINITE` parts finite). Raises: `Damaged` or Orbax's read error."""
+    import orbax.checkpoint as ocp
+
+    args = ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
+                              digest=ocp.args.JsonRestore())
+    try:
+        restored = manager.restore(step, args=args)
+    except KeyError as e:  # Orbax's for an item the checkpoint lacks
+        if '"digest"' in str(e):
+            raise Damaged("no digest saved (saved before checkpoints had digests?)") from None
+        raise
+    check(to_host(restored["state"]), restored["digest"], FINITE)
+    return restored["state"]
+
+
+def seal(record: dict) -> dict:
+    """`record` (JSON) with the SHA-256 of its canonical text under "sha256" (`unseal`)."""
+    body = {k: v for k, v in record.items() if k != "sha256"}
+    text = json.dumps(body, sort_keys=True)
+    return body | {"sha256": hashlib.sha256(text.encode()).hexdigest()}
+
+
+def unseal(record, name: str = "") -> dict:
+    """The `seal`ed `record` without its digest. Raises `Damaged` (its message begins with
+    `name`) where the digest is missing or does not match."""
+    name = f"{name}: " if name else ""
+    if not isinstance(record, dict) or "sha256" not in record:
+        raise Damaged(f"{name}no digest saved")
+    if seal(record)["sha256"] != record["sha256"]:
+        raise Damaged(f"{name}its SHA-256 is not the saved one")
+    return {k: v for k, v in record.items() if k != "sha256"}
+
+
+def read_sealed(path: Path) -> dict:
+    """The record `seal`ed in the JSON file `path`; `Damaged` where it does not read."""
+    with read_error(str(path)):
+        return unseal(json.loads(Path(path).read_text()))
+
+
+DAMAGED = "checkpoints_damaged"  # where damaged checkpoints are moved, under the run
 
 
 def _why(e: Exception) -> str:
-    """The first part of a restore error (TensorStore appends its whole spec)."""
+    """The first line of a restore error's innermost cause (where TensorStore names the array),
+    without the spec TensorStore appends."""
+    while e.__cause__ is not None:
+        e = e.__cause__
     text = str(e).split(" [tensorstore_spec")[0].strip().splitlines()
     text = text[0] if text else ""
     return f"{type(e).__name__}: {text[:300]}"
 
 
-def _drop_closed_loop_reports() -> None:
-    """From now on, drop the "Event loop is closed" reports of reads cut short (idempotent).
+@contextlib.contextmanager
+def read_error(name: str):
+    """Any error of the reads inside raised as `Damaged`, naming `name` (and `_why`)."""
+    try:
+        yield
+    except Damaged as e:
+        raise Damaged(f"{name} is damaged: {e}") from None
+    except Exception as e:
+        _drop_cut_short_reports()
+        raise Damaged(f"{name} does not read ({_why(e)})") from e
+
+
+CUT_SHORT = ("Event loop is closed", "Encountered error while reading array index")
+
+
+def _cut_short_log(record) -> bool:
+    """Whether asyncio's log `record` is of a read a failed restore left unawaited."""
+    text = record.getMessage()
+    return "exception was never retrieved" in text and (
+        "tensorstore_spec" in text or CUT_SHORT[1] in text)
+
+
+def _drop_cut_short_reports() -> None:
+    """From now on, drop the reports of reads cut short by a failed restore (idempotent).
 
     A restore that fails (a damaged array) ends Orbax's event loop while TensorStore still
     reads the checkpoint's other arrays; each read that completes then calls back into the
-    closed loop, and Python prints a traceback for it, one per array (about 270 for a run),
-    whenever it completes, also after the restore returned. They say nothing the one line
-    about the skipped checkpoint does not."""
+    closed loop, and each that fails too (a truncated or missing data file holds several
+    arrays) is left unawaited: Python prints a traceback for each (an unraisable exception or
+    asyncio's log), one per array (about 270 for a run), whenever it completes, also after
+    the restore returned. They say nothing the one line about the damage does not."""
     previous = sys.unraisablehook
-    if getattr(previous, "drops_closed_loop", False):
+    if getattr(previous, "drops_cut_short", False):
         return
 
     def hook(report):
         e = report.exc_value
-        if not (isinstance(e, RuntimeError) and str(e) == "Event loop is closed"):
+        cut_short = (isinstance(e, RuntimeError) and str(e) == CUT_SHORT[0]) or (
+            type(e) is Exception and str(e).startswith(CUT_SHORT[1]))
+        if not cut_short:
             previous(report)
 
-    hook.drops_closed_loop = True
+    hook.drops_cut_short = True
     sys.unraisablehook = hook
+    logging.getLogger("asyncio").addFilter(lambda record: not _cut_short_log(record))
 
 
 def restore_newest(out: Path, restore_fn, log=print):
@@ -72,7 +206,7 @@ def restore_newest(out: Path, restore_fn, log=print):
             state = restore_fn(manager, step)
         except Exception as e:  # damaged data, metadata or a cut-short copy: TensorStore's
             skipped.append((step, _why(e)))  # DATA_LOSS, JSON and file errors alike
-            _drop_closed_loop_reports()
+            _drop_cut_short_reports()
             continue
         break
     else:
@@ -83,7 +217,7 @@ def restore_newest(out: Path, restore_fn, log=print):
             )
         return None, None, []
     for bad, why in skipped:
-        log(f"checkpoint {bad} does not read, skipped ({why})")
+        log(f"checkpoint {bad} is damaged, skipped ({why})")
     if skipped:
         if jax.process_index() == 0:
             for bad, _ in skipped:

@@ -5,7 +5,9 @@ each body of the greedy trajectory (`step0` = m0, `step1`, ...): an Orbax checkp
 controller (the PPO `Params`, all K controllers of `PPOConfig.controllers` along a leading
 axis) with JSON metadata: the space, the fitness config that rebuilds the networks, the run's
 seed, the body and its fitness. Orbax writes to a temporary directory and renames it, so a
-crash leaves no half-written controller behind.
+crash leaves no half-written controller behind. The metadata keeps the SHA-256 of each array of
+the controller and of itself (`checkpoints.digests`, `checkpoints.seal`): `load` checks them and
+that the controller is finite, so a damaged one is an error, never a replay of damaged weights.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from pathlib import Path
 import jax
 
 from evojax_morph import ppo
+from evojax_morph.checkpoints import check, digests, read_error, seal, unseal
 from evojax_morph.fitnesses import FitnessConfig, get_fitness
 from evojax_morph.morphology import Morphology
 from evojax_morph.spaces import Space, make_space
@@ -58,27 +61,38 @@ def save(path: Path, saved: SavedController) -> None:
         "morphology": saved.morph.to_dict(),
         "value": saved.value,
         "label": saved.label,
+        "params": digests(jax.device_get(saved.params)),
     }
     ocp, ckptr = _checkpointer()
     with ckptr:
         args = ocp.args.Composite(
-            params=ocp.args.StandardSave(saved.params), meta=ocp.args.JsonSave(meta)
+            params=ocp.args.StandardSave(saved.params), meta=ocp.args.JsonSave(seal(meta))
         )
         ckptr.save(Path(path).resolve(), args=args, force=True)
 
 
 def load(path: Path) -> SavedController:
-    """The controller saved in `path` by `save`, its networks rebuilt from the saved config."""
+    """The controller saved in `path` by `save`, its networks rebuilt from the saved config.
+
+    Raises:
+      checkpoints.Damaged: a file does not read, a digest is missing or does not match, or the
+        controller holds non-finite values.
+    """
     path = Path(path).resolve()
     ocp, ckptr = _checkpointer()
+    name = f"saved controller {path}"
     with ckptr:
-        meta = ckptr.restore(path, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
+        with read_error(name):
+            meta = ckptr.restore(path, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
+            meta = unseal(meta["meta"], "metadata")
         space = make_space(meta["space"])
         fitness = FitnessConfig.from_dict(meta["fitness"])
         init, _ = ppo.make_train(space, fitness.task, fitness.ppo)
         abstract = jax.eval_shape(init, jax.random.PRNGKey(0))
         restore = ocp.args.Composite(params=ocp.args.StandardRestore(abstract))
-        params = ckptr.restore(path, args=restore)["params"]
+        with read_error(name):
+            params = ckptr.restore(path, args=restore)["params"]
+            check(jax.device_get(params), meta.get("params"))
     morph = space.from_json(space.to_json(Morphology.from_dict(meta["morphology"])))
     return SavedController(space, fitness, int(meta["seed"]), morph, params,
                            float(meta["value"]), meta["label"])

@@ -26,8 +26,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from evojax_morph import bodylog, controllers, video
-from evojax_morph.checkpoints import checkpoint_manager, restore_newest
+from evojax_morph import bodylog, checkpoints, controllers, video
 from evojax_morph.confirm import Confirmed, confirm, lower_confirm
 from evojax_morph.fitnesses import get_fitness
 from evojax_morph.morphology import Morphology
@@ -154,15 +153,12 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup):
     abstract = jax.tree.map(on_mesh, jax.eval_shape(p.agent.init, key_init))
     step = state = None
     if resume:
-        import orbax.checkpoint as ocp
-
-        restore = ocp.args.Composite(state=ocp.args.StandardRestore(abstract))
-        step, state, _ = restore_newest(
-            out, lambda manager, step: manager.restore(step, args=restore)["state"], log
+        step, state, _ = checkpoints.restore_newest(
+            out, lambda manager, step: checkpoints.restore_checked(manager, step, abstract), log
         )
         if lead:  # a checkpoint reads (or there is none): the run goes on under this config
             write_config()
-    _, manager = checkpoint_manager(out)
+    _, manager = checkpoints.checkpoint_manager(out)
     bodies = bodylog.BodyLog(out / "bodies.sqlite", p.space) if lead else None
     greedy_rollout = None if p.agent.scores is None else make_greedy_rollout(p)
     compile_ahead(ahead, p, cfg, step or 0, abstract, greedy_rollout, key_greedy, gif)
@@ -197,7 +193,6 @@ def _warm_up(run: Run, step, state, ahead: Warmup):
 def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup) -> Evolved:
     """The steps from `step` to cfg.steps, chunk by chunk: metrics.csv, the body log and
     TensorBoard after each chunk, a checkpoint every cfg.checkpoint_every chunks and at the end."""
-    import orbax.checkpoint as ocp
     from tensorboardX import SummaryWriter
     from tqdm import tqdm
 
@@ -228,7 +223,7 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup) -> Evol
                 w.writeheader()
                 w.writerows(rows)
         if chunks_done % cfg.checkpoint_every == 0 or step >= cfg.steps:
-            run.manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state)))
+            run.manager.save(step, args=checkpoints.save_args(state))
     bar.close()
     run.manager.wait_until_finished()
     if lead:
@@ -296,7 +291,7 @@ def _report(run: Run, evolved: Evolved, best: Best, clock: Clock) -> None:
     out, p = run.out, run.p
     if best.top is not None:  # written last: the stage is done, a --resume keeps it
         best.record["best_morphology"] = best.morph.to_dict()
-        (out / "confirmed.json").write_text(json.dumps(best.record, indent=1))
+        (out / "confirmed.json").write_text(json.dumps(checkpoints.seal(best.record), indent=1))
     task = p.fitness.task
     write_results(out, p.space, evolved.rows, best.morph, best.fitness, best.greedy, evolved.step,
                   best.saved, run.gif, best.record, clock.phase,
@@ -377,7 +372,7 @@ def confirm_stage(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print):
     record = {"env_steps": step, "bodies": n, "controllers": c, "confirmed": []}
     done = out / "confirmed.json"
     if done.exists():
-        before = json.loads(done.read_text())
+        before = checkpoints.read_sealed(done)
         if all(before.get(k) == record[k] for k in ("env_steps", "bodies", "controllers")):
             log("confirm: done when the run finished, kept (confirmed.json)")
             return before, None

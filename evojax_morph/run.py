@@ -435,7 +435,9 @@ def main(argv: list[str] | None = None) -> int:
     persistent_cache()  # a second run of the same shapes skips XLA's compiles
     try:
         driver.execute(cfg, out, resume, gif)
-    except checkpoints.ResumeError as e:  # bad input, as the parser's errors: code 2 and why
+    except (checkpoints.ResumeError, checkpoints.Damaged) as e:
+        # Bad input, as the parser's errors: code 2 and why (no checkpoint reads, or a file the
+        # run reads back, a saved controller or confirmed.json, is damaged).
         print(f"python -m evojax_morph.run: error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
     return 0

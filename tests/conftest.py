@@ -3,6 +3,7 @@
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
@@ -47,3 +48,29 @@ def on_four_devices(script: str, *args: str) -> subprocess.CompletedProcess:
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
+
+
+def flip(f: Path) -> None:
+    """64 bytes of the file `f` inverted in place, at offset 100 (the middle of a smaller one)."""
+    data = bytearray(f.read_bytes())
+    at = min(100, len(data) // 2)
+    data[at:at + 64] = bytes(b ^ 0xFF for b in data[at:at + 64])
+    f.write_bytes(bytes(data))
+
+
+def truncate(f: Path) -> None:
+    """The file `f` cut to half its length."""
+    f.write_bytes(f.read_bytes()[: f.stat().st_size // 2])
+
+
+DAMAGES = (flip, truncate, Path.unlink)  # what a disk error or a cut-short copy does to a file
+
+
+def data_files(checkpoint: Path) -> list[Path]:
+    """The files of an Orbax checkpoint that hold data: its arrays' (under d/) and its JSON
+    item's (a run's checkpoint: the digest; a saved controller: its metadata)."""
+    files = [f for f in sorted(checkpoint.rglob("*")) if f.is_file() and f.parent.name == "d"]
+    json_item = [checkpoint / d / "metadata" for d in ("digest", "meta")
+                 if (checkpoint / d).is_dir()]
+    assert files and len(json_item) == 1, f"not a checkpoint of a run or a controller: {checkpoint}"
+    return files + json_item

@@ -15,10 +15,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import DAMAGES, data_files, flip
 
 import evojax_morph as em
 from evojax_morph import driver, engines, run, warmup
-from evojax_morph.checkpoints import DAMAGED, _drop_closed_loop_reports
+from evojax_morph.checkpoints import (
+    DAMAGED,
+    FINITE,
+    Damaged,
+    _drop_cut_short_reports,
+    check,
+    checkpoint_manager,
+    digests,
+    restore_checked,
+    restore_newest,
+)
+from evojax_morph.pipeline import RunConfig, build
 
 TINY = [
     "--space",
@@ -137,46 +149,42 @@ def test_resume_matches_an_uninterrupted_run(tmp_path, straight):
         np.testing.assert_array_equal(x, y)
 
 
-def _damage(checkpoint: Path) -> None:
-    """Zeros over every data file of an Orbax checkpoint, as a disk error leaves it."""
-    files = [f for f in checkpoint.rglob("*") if f.is_file() and f.parent.name == "d"]
-    assert files, f"no data files under {checkpoint}"
-    for f in files:
-        f.write_bytes(bytes(f.stat().st_size))
-
-
 def _snapshot(run_dir: Path) -> dict:
     return {str(f.relative_to(run_dir)): f.read_bytes()
             for f in sorted(run_dir.rglob("*")) if f.is_file()}
 
 
 def test_resume_past_a_damaged_checkpoint(tmp_path, straight, capsys):
-    """The newest checkpoint's data damaged: the resume goes on from the one before, says which
-    was skipped and why, keeps it aside, cuts metrics and the body log back, and ends as an
-    uninterrupted run. Every checkpoint damaged: exit 2 with the reasons, the directory as it
-    was."""
+    """The newest checkpoint's arrays damaged as a disk error leaves them (bytes inverted in
+    every data file of ocdbt.process_0/: they still read, as other values, which only the
+    digest tells): the resume goes on from the one before, says which was skipped and why,
+    keeps it aside, cuts metrics and the body log back, and ends as an uninterrupted run. Every
+    checkpoint damaged: exit 2 with the reasons, the directory as it was."""
     split = tmp_path / "split"
     assert run.main(TINY + ["--steps", "6", "--seed", "3", "--out", str(split)]) == 0
     checkpoints = split / "checkpoints"
     assert sorted(int(d.name) for d in checkpoints.iterdir()) == [3, 6]
-    _damage(checkpoints / "6")
+    damage = lambda checkpoint: [flip(f) for f in data_files(checkpoint)  # noqa: E731
+                                 if "ocdbt.process_0" in f.parts]
+    damage(checkpoints / "6")
 
     none = tmp_path / "none"  # a copy with both checkpoints damaged
     shutil.copytree(split, none)
-    _damage(none / "checkpoints" / "3")
+    damage(none / "checkpoints" / "3")
     before = _snapshot(none)
     capsys.readouterr()
     with pytest.raises(SystemExit) as e:
         run.main(TINY + ["--steps", "9", "--out", str(none), "--resume"])
     err = capsys.readouterr().err
     assert e.value.code == 2 and "no checkpoint of" in err
-    assert "step 6: ValueError: DATA_LOSS" in err and "step 3: ValueError: DATA_LOSS" in err
+    assert "step 6: Damaged: .learner" in err and "step 3: Damaged: .learner" in err
     assert _snapshot(none) == before  # nothing deleted, moved or rewritten
 
     damaged = _snapshot(checkpoints / "6")
     assert run.main(TINY + ["--steps", "9", "--out", str(split), "--resume"]) == 0
     printed = capsys.readouterr().out
-    assert "checkpoint 6 does not read, skipped (ValueError: DATA_LOSS" in printed
+    assert "checkpoint 6 is damaged, skipped (Damaged: .learner" in printed
+    assert "its SHA-256 is not the saved one)" in printed
     assert "resumed at step 3" in printed
     assert _snapshot(split / DAMAGED / "6") == damaged  # kept as it was, not deleted
     assert sorted(int(d.name) for d in checkpoints.iterdir()) == [6, 9]  # saved afresh
@@ -185,10 +193,59 @@ def test_resume_past_a_damaged_checkpoint(tmp_path, straight, capsys):
     assert log_rows(split) == log_rows(straight)
 
 
-def test_a_failed_restore_drops_only_the_closed_loop_reports(monkeypatch):
+def test_no_damaged_data_file_is_restored(tmp_path, straight, capsys):
+    """Each data file of the newest checkpoint, one at a time, with bytes inverted in place,
+    cut to half, then deleted: the restore a --resume makes (`restore_newest` with
+    `restore_checked`) either says the checkpoint is damaged, naming the array or file and the
+    check, moves it aside and goes on to the one before, or restores the state the run saved,
+    bit for bit (from which a run ends as the uninterrupted one: the two tests above). The
+    digest catches what the reader does not: inverted bytes of an array read as other values."""
+    cfg = RunConfig(**json.loads((straight / "config.json").read_text()))
+    abstract = jax.eval_shape(build(cfg).agent.init, jax.random.PRNGKey(0))
+    _, manager = checkpoint_manager(straight)
+    saved = jax.device_get(restore_checked(manager, 9, abstract))
+    # The one before is not read here: the test above restores one after a damaged one.
+    restore = lambda manager, step: restore_checked(manager, step, abstract) if step == 9 else 6
+    reasons = []
+    for i, f in enumerate(data_files(straight / "checkpoints" / "9")):
+        for damage in DAMAGES:
+            out = tmp_path / f"{i}{damage.__name__}"
+            shutil.copytree(straight / "checkpoints", out / "checkpoints")
+            damage(out / f.relative_to(straight))
+            step, state, skipped = restore_newest(out, restore)
+            if step == 9:  # the damage missed what the state is read from
+                for x, y in zip(jax.tree.leaves(saved), jax.tree.leaves(jax.device_get(state))):
+                    np.testing.assert_array_equal(x, y)
+                continue
+            assert (step, state, [s for s, _ in skipped]) == (6, 6, [9]), (f, damage)
+            assert (out / DAMAGED / "9").is_dir() and not (out / "checkpoints" / "9").exists()
+            reasons.append(skipped[0][1])
+    printed = capsys.readouterr().out
+    assert printed.count("checkpoint 9 is damaged, skipped (") == len(reasons) >= 10
+    assert [r for r in reasons if r.startswith("Damaged: .learner")
+            and r.endswith(": its SHA-256 is not the saved one")], reasons
+
+    # Without its digest (saved before checkpoints had one) a checkpoint is damaged too, and so
+    # is a state whose networks hold a NaN under a digest that matches; a distance may be NaN.
+    out = tmp_path / "no_digest"
+    shutil.copytree(straight / "checkpoints", out / "checkpoints")
+    shutil.rmtree(out / "checkpoints" / "9" / "digest")
+    assert [why for _, why in restore_newest(out, restore)[2]] == [
+        "Damaged: no digest saved (saved before checkpoints had digests?)"]
+    assert np.isnan(saved.evo.distance).any()
+    check(saved, digests(saved), FINITE)
+    nan = jax.tree.map(lambda x: x * np.nan, saved.learner.params)
+    bad = saved.replace(learner=saved.learner.replace(params=nan))
+    with pytest.raises(Damaged, match=r"^\.learner\.params\[.*: non-finite values where they"):
+        check(bad, digests(bad), FINITE)
+
+
+def test_a_failed_restore_drops_only_the_reports_of_reads_cut_short(monkeypatch, caplog):
     """After a restore fails, the reads it cut short report "Event loop is closed" as they
-    complete (one traceback each, about 270 for a run): those are dropped, every other
-    unraisable exception still reaches the hook that was there."""
+    complete, or their own failure (a truncated file holds several arrays), one traceback each
+    (about 270 for a run), as unraisable exceptions or in asyncio's log: those are dropped,
+    every other unraisable exception still reaches the hook that was there, and every other
+    log record the log."""
     reported = []
     monkeypatch.setattr(sys, "unraisablehook", lambda r: reported.append(r.exc_value))
 
@@ -199,13 +256,21 @@ def test_a_failed_restore_drops_only_the_closed_loop_reports(monkeypatch):
         def __del__(self):
             raise self.e
 
-    _drop_closed_loop_reports()
-    _drop_closed_loop_reports()  # once is enough: not wrapped twice
+    _drop_cut_short_reports()
+    _drop_cut_short_reports()  # once is enough: not wrapped twice
     Raises(RuntimeError("Event loop is closed"))
+    Raises(Exception("Encountered error while reading array index: (slice(0, 4, 1),)."))
     Raises(RuntimeError("something else"))
     Raises(ValueError("Event loop is closed"))
+    Raises(ValueError("Encountered error while reading array index"))
     assert [(type(e).__name__, str(e)) for e in reported] == [
-        ("RuntimeError", "something else"), ("ValueError", "Event loop is closed")]
+        ("RuntimeError", "something else"), ("ValueError", "Event loop is closed"),
+        ("ValueError", "Encountered error while reading array index")]
+    never = "Task exception was never retrieved\nfuture: <Task finished exception=ValueError("
+    with caplog.at_level(logging.ERROR, logger="asyncio"):
+        for text in ("'NOT_FOUND: Error reading [tensorstore_spec=...]')>", "'other')>"):
+            logging.getLogger("asyncio").error(never + text)
+    assert [r.getMessage() for r in caplog.records] == [never + "'other')>"]
 
 
 def log_rows(run_dir):

@@ -9,10 +9,13 @@ import jax
 import numpy as np
 import pytest
 import scipy.stats
+from conftest import truncate
 
 import evojax_morph as em
 from evojax_morph import bodylog, driver, run
+from evojax_morph.checkpoints import Damaged
 from evojax_morph.fitnesses import table as tb
+from evojax_morph.pipeline import RunConfig
 
 S = 8  # results a body in the tables here
 STEADY, LUCKY, UNLUCKY = 350.0, 400.0, -1000.0
@@ -71,7 +74,8 @@ def test_a_lucky_draw_is_not_the_best_body(planted, walker):
     assert summary["best_bodies"] == em.best_bodies(out / "bodies.sqlite", 10)
 
 
-def test_resume_of_a_finished_run_does_not_confirm_again(planted, tmp_path, monkeypatch):
+def test_resume_of_a_finished_run_does_not_confirm_again(planted, tmp_path, monkeypatch,
+                                                          capsys):
     out, args = planted
     again = tmp_path / "run"
     shutil.copytree(out, again)
@@ -83,6 +87,19 @@ def test_resume_of_a_finished_run_does_not_confirm_again(planted, tmp_path, monk
     assert run.main(["--out", str(again), "--resume", "--steps", "4"]) == 0
     for name in ("summary.json", "confirmed.json"):
         assert (again / name).read_text() == (out / name).read_text()
+
+    # Read back only as it was written: a value changed, or the file cut short, is an error.
+    record = json.loads((again / "confirmed.json").read_text())
+    record["confirmed"][0]["mean"] += 1.0
+    (again / "confirmed.json").write_text(json.dumps(record))
+    with pytest.raises(SystemExit) as e:
+        run.main(["--out", str(again), "--resume", "--steps", "4"])
+    assert e.value.code == 2
+    assert "confirmed.json is damaged: its SHA-256 is not the saved one" in capsys.readouterr().err
+    truncate(again / "confirmed.json")
+    cfg = RunConfig(**json.loads((again / "config.json").read_text()))
+    with pytest.raises(Damaged, match=r"confirmed.json does not read \(JSONDecodeError: "):
+        driver.confirm_stage(again, None, cfg, 4)
 
 
 def test_confirm_interval_and_values(walker, tmp_path):

@@ -4,8 +4,10 @@ x two controllers, and `em.confirm`'s of two bodies x two controllers in the con
 test; the default set's controllers are fresh ones."""
 
 import dataclasses
+import json
 import logging
 import os
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -16,10 +18,12 @@ import chex
 import jax
 import numpy as np
 import pytest
+from conftest import DAMAGES, data_files
 from PIL import Image
 
 import evojax_morph as em
 from evojax_morph import bodylog, controllers, driver, opengl, ppo, render, video
+from evojax_morph.checkpoints import Damaged
 from evojax_morph.pipeline import Greedy, RunConfig, build
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -84,6 +88,47 @@ def test_saved_controllers_round_trip(run_dir):
         controllers.body_dir(out, "worst")
     with pytest.raises(FileNotFoundError, match="saved steps: 0, 1"):
         controllers.body_dir(out, "step 5")
+
+
+def test_a_damaged_controller_is_an_error(run_dir, tmp_path, capsys):
+    """Each data file of a saved controller (its arrays' and its metadata's), one at a time,
+    with bytes inverted in place, cut to half, then deleted: `em.load_controller` either raises
+    `Damaged`, naming the controller and the check, and `render` exits 2 with that message, or
+    loads the controller saved, bit for bit. A controller saved without digests (before they
+    were kept) or holding a NaN is damaged too."""
+    out, p, *_ = run_dir
+    saved = em.load_controller(out / controllers.DIR / "step0")
+    caught = []
+    for i, f in enumerate(data_files(out / controllers.DIR / "step0")):
+        for damage in DAMAGES:
+            run = tmp_path / f"{i}{damage.__name__}"
+            shutil.copytree(out / controllers.DIR / "step0", run / controllers.DIR / "step0")
+            damage(run / f.relative_to(out))
+            said = f"saved controller {run / controllers.DIR / 'step0'} "
+            try:
+                loaded = em.load_controller(run / controllers.DIR / "step0")
+            except Damaged as e:  # (which array fails first may differ from one read to the next)
+                assert str(e).startswith(said)
+                with pytest.raises(SystemExit) as code:
+                    render.main([str(run), "--body", "step", "0", "--no-mp4"])
+                assert code.value.code == 2 and f"error: {said}" in capsys.readouterr().err
+                caught.append(str(e))
+                continue
+            chex.assert_trees_all_equal(loaded.params, saved.params)
+            assert loaded.space.canonical(loaded.morph) == saved.space.canonical(saved.morph)
+    assert len(caught) >= len(DAMAGES) * 2, caught
+    assert [c for c in caught if c.endswith(": its SHA-256 is not the saved one")], caught
+
+    meta = tmp_path / "old" / "meta" / "metadata"  # saved before controllers had digests
+    shutil.copytree(out / controllers.DIR / "step0", tmp_path / "old")
+    meta.write_text(json.dumps({k: v for k, v in json.loads(meta.read_text()).items()
+                                if k not in ("sha256", "params")}))
+    with pytest.raises(Damaged, match="is damaged: metadata: no digest saved"):
+        em.load_controller(tmp_path / "old")
+    nan = jax.tree.map(lambda x: x * np.nan, saved.params)
+    controllers.save(tmp_path / "nan", dataclasses.replace(saved, params=nan))
+    with pytest.raises(Damaged, match=r"is damaged: \.normalizer\.mean: non-finite values where"):
+        em.load_controller(tmp_path / "nan")
 
 
 @pytest.mark.slow  # its own PPO program (C = 2 at 320 steps): over 2 minutes cold on 2 cores
