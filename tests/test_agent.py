@@ -10,7 +10,7 @@ from test_spaces import reachable
 import evojax_morph as em
 from evojax_morph import agents
 from evojax_morph.agents import dqn, qrdqn
-from evojax_morph.evolution import EvolutionEnv, masked_argmax
+from evojax_morph.evolution import REMEASURE, EvolutionEnv, masked_argmax
 from evojax_morph.pipeline import RunConfig, build
 
 HORIZON, NUM_ENVS, CHUNK, CHUNKS = 4, 16, 50, 4
@@ -210,7 +210,7 @@ class RootOnlyEnv(EvolutionEnv):
         )
 
     def step(self, key, state, action):
-        valid = self.observe(state).mask[jnp.arange(self.num_envs), action]
+        valid = self.observe(state).mask[jnp.arange(self.num_envs), action] | (action == REMEASURE)
         obs, new, reward, terminated, truncated, info = super().step(key, state, action)
         return obs, new, jnp.where(valid, reward, jnp.nan), terminated, truncated, info
 

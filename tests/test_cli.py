@@ -58,6 +58,14 @@ TINY = [
          "unknown task 'run'; known tasks: distance, walk"),
         (["--space", "bad_walker", "--fitness", "table", "--task", "walk"],
          "was built under the task 'distance', but --task asks for 'walk'"),
+        (["--agent", "nope"], "regularized_evolution"),  # the agents named
+        (["--agent", "regularized_evolution", "--population", "3"],
+         "the population (3) must hold at least a step's 4 children"),
+        (["--agent", "regularized_evolution", "--population", "8", "--tournament", "9"],
+         "the tournament must sample between 1 and the population (8) members, got 9"),
+        (["--agent", "regularized_evolution", "--num-envs", "1", "--population", "1"],
+         "the population must be at least 2, got 1"),
+        (["--agent", "evolution", "--num-envs", "1"], "it needs at least 2 parallel evolutions"),
     ],
 )
 def test_bad_input_exits_with_2(args, message, capsys, tmp_path):

@@ -10,11 +10,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_spaces import reachable
+from test_spaces import reachable, reachable_batched
 
 import evojax_morph as em
-from evojax_morph import landscape
-from evojax_morph.agents import a2c
+from evojax_morph import agents, landscape
+from evojax_morph.agents import a2c, baselines
+from evojax_morph.fitnesses import table as tb
 from evojax_morph.pipeline import RunConfig, build
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -94,12 +95,12 @@ def test_actor_critic_learns_bad_walker():
 
 
 def evolution_search(seeds):
-    """Per seed (one vmapped call): best fitness per step (S, 12) and the final population's
+    """Per seed (one vmapped call): best fitness per step (S, 24) and the final population's
     fitness (S, 8) of (mu + lambda) evolution on Bad Walker with the predefined fitness."""
     init, chunk, scores = make("bad_walker", "evolution", 8, 4).agent
     assert scores is None
     keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))
-    states, metrics = jax.jit(jax.vmap(lambda s: chunk(s, 12)))(jax.jit(jax.vmap(init))(keys))
+    states, metrics = jax.jit(jax.vmap(lambda s: chunk(s, 24)))(jax.jit(jax.vmap(init))(keys))
     return np.asarray(metrics["best_fitness"]), np.asarray(states.evo.fitness)
 
 
@@ -111,11 +112,114 @@ def test_evolution_is_elitist_and_finds_the_optimum():
     # is worse than the m0 they all began as.
     assert (np.diff(best, axis=1) >= 0).all()
     assert population.min() >= float(space.predefined_fitness(space.initial()))
-    # 96 evaluations find Bad Walker's best body in most seeds. Measured on 2 CPU cores (jax
-    # 0.10.2): 10 of these 12 seeds, 37 of seeds 0-41 (the others end at 1.83, one site short).
+    # 192 evaluations find Bad Walker's best body in nearly every seed (half of them measure
+    # the survivors again, which a deterministic fitness does not need). Measured on 2 CPU
+    # cores (jax 0.10.2, `evolution_search(range(100, 148))`): 47 of seeds 100-147 (one ends at 1.0); at 96
+    # evaluations 33 of 48. 9 of 12 fail only if 4 of 12 miss: about 1 in 10^4 at 1 in 48.
     optimum = max(float(space.predefined_fitness(m)) for m in reachable(space))
     found = np.abs(best[:, -1] - optimum) < 1e-6
-    assert found.mean() >= 0.5, best[:, -1]
+    assert found.mean() >= 0.75, best[:, -1]
+
+
+def on_table(agent, num_envs, **run):
+    """The run's pipeline with Bad Walker's packaged table fitness (one draw a body)."""
+    return build(RunConfig(space="bad_walker", fitness="table", agent=agent, num_envs=num_envs,
+                           **run))
+
+
+def test_evolution_ranks_its_survivors_by_the_mean_of_their_draws():
+    """Step by step against numpy, from each step's evaluated bodies: the first half are the
+    survivors, evaluated again unchanged; a survivor's fitness becomes the mean of all its
+    draws, a child's is its one draw; the best half of them by that mean survive (ties: the
+    lower slot), each followed by a copy to mutate."""
+    n, mu = 6, 3
+    agent = on_table("evolution", n).agent
+    state = agent.init(jax.random.PRNGKey(3))
+    np.testing.assert_array_equal(state.learner, np.ones(n))  # m0's N draws, one each
+    for _ in range(4):
+        new, m = agent.chunk(state, 1)
+        log = jax.tree.map(lambda x: np.asarray(x[0]), m["bodies"])
+        for a, b in zip(jax.tree.leaves(log["parent"]), jax.tree.leaves(log["morph"])):
+            np.testing.assert_array_equal(a[:mu], b[:mu])  # the survivors: the same bodies
+        draws = np.asarray(state.learner, np.float32)
+        mean = np.where(np.arange(n) < mu, (np.asarray(state.evo.fitness) * draws
+                                            + log["fitness"]) / (draws + 1), log["fitness"])
+        count = np.where(np.arange(n) < mu, draws + 1, 1)
+        keep = np.argsort(-mean, kind="stable")[:mu][np.arange(n) % mu]
+        np.testing.assert_allclose(new.evo.fitness, mean[keep], rtol=1e-6)
+        np.testing.assert_array_equal(new.learner, count[keep])
+        state = new
+    assert int(np.max(state.learner)) > 2  # some survivor was measured again and again
+
+
+def test_regularized_evolution_ages_out_its_oldest():
+    """P = 8 members, N = 4 children a step, tournaments of S = P (every member sampled): the
+    population is a ring of the last two steps' children, the first step's aged out at the
+    third, and every parent is the fittest member."""
+    agent = on_table("regularized_evolution", 4, population=8, tournament=8).agent
+    state, draws = agent.init(jax.random.PRNGKey(5)), []
+    for step in range(3):
+        state, m = agent.chunk(state, 1)
+        draws.append(np.asarray(m["bodies"]["fitness"][0]))
+        pop = state.learner
+        assert int(pop.size) == min(4 * (step + 1), 8) and int(pop.next) == 4 * (step + 1) % 8
+        members = np.asarray(pop.evo.fitness)[: int(pop.size)]
+        np.testing.assert_array_equal(members[:4], draws[-1] if step != 1 else draws[0])
+        np.testing.assert_array_equal(state.evo.fitness, np.full(4, members.max()))
+    np.testing.assert_array_equal(np.asarray(pop.evo.fitness)[4:], draws[1])  # step 2's children
+
+
+def lucky_draw_table(path):
+    """A Bad Walker table (32 results a body) where every body but one has a lucky draw: one
+    result in 32 is 800 above its mean (0 to 100), the others a little below; the best body,
+    3 mutations from m0, has a mean of 200 in noisy draws (100 or 300) and no lucky one.
+    Returns the best body."""
+    space = em.make_space("bad_walker")
+    bodies, _ = space.enumerate_bodies()
+    names = [space.canonical(m) for m in bodies]
+    depth = {space.canonical(m): d for m, d in reachable_batched(space)}
+    b = next(i for i, name in enumerate(names) if depth.get(name) == 3)  # the first of 65
+    rng = np.random.default_rng(0)
+    mean = rng.uniform(0, 100, len(names))
+    fitness = mean[:, None] + rng.normal(0, 10, (len(names), 32))
+    fitness[:, 0] += 800
+    fitness[:, 1:] -= 800 / 31
+    fitness[b] = np.where(np.arange(32) % 2, 100.0, 300.0)
+    tb.Table(space.name, names, tb.stacked(list(bodies)), fitness.astype(np.float32),
+             np.zeros(fitness.shape, bool), {"env_steps_per_result": 1}).save(path)
+    return bodies[b]
+
+
+@pytest.mark.learning
+def test_measuring_again_or_aging_escapes_lucky_draws(tmp_path):
+    """On a table of lucky draws, the single-draw (mu + lambda) rule fills its population with
+    them and stays; evolution measuring its survivors again and regularized evolution end
+    their runs on the best body: per seed, over 100 steps of 8 evaluations, whether more than
+    a tenth of the last 25 steps' evaluations are the best body."""
+    best = jnp.asarray(tb.signature(lucky_draw_table(tmp_path / "t.npz")))
+    env = build(RunConfig(space="bad_walker", fitness="table", table=str(tmp_path / "t.npz"),
+                          agent="random", num_envs=8)).env
+    keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(24))
+
+    def ends_on_best(policy):
+        agent = agents.from_policy(env, policy)
+
+        def run(key):
+            state, m = agent.chunk(agent.init(key), 100)
+            on_best = (jax.vmap(jax.vmap(tb.signature))(m["bodies"]["morph"]) == best).all(-1)
+            return on_best[-25:].mean() > 0.1, (state.evo.fitness > 400).mean()
+
+        return map(np.asarray, jax.jit(jax.vmap(run))(keys))
+
+    ended, lucky = ends_on_best(baselines.make_single_draw_evolution(env))
+    # Measured on 2 CPU cores (jax 0.10.2) over seeds 100-147: the single-draw rule's final
+    # population all lucky draws in every seed, no seed ending on the best body; evolution 29
+    # of 48 seeds (60%), regularized evolution 27 (56%). At 56%, 8 of 24 or fewer (the bound
+    # below) is about 1 in 300 (Binomial); 3 of 24 at the measured 0 in 48 under 1 in 100.
+    assert lucky.mean() >= 0.9 and ended.mean() <= 0.1, (lucky, ended)
+    for make_policy in (baselines.make_evolution, baselines.make_regularized_evolution):
+        ended, _ = ends_on_best(make_policy(env))
+        assert ended.mean() >= 0.375, (make_policy.__name__, ended)
 
 
 def test_random_walks_restart():
