@@ -51,6 +51,18 @@ TASKS = {
 }
 
 
+# What "walks" means everywhere (the run's printout, docs/results.md): a body confirmed at a
+# mean distance of at least WALK_METRES in an episode, upright the whole episode in at least
+# WALK_UPRIGHT of its confirming evaluations. Any other body "moves" (its numbers said).
+WALK_METRES = 2.0
+WALK_UPRIGHT = 0.9
+
+
+def gait_word(distance: float, upright_whole: float) -> str:
+    """"walks" where a confirmed body meets the definition above, else "moves"."""
+    return "walks" if distance >= WALK_METRES and upright_whole >= WALK_UPRIGHT else "moves"
+
+
 def list_tasks() -> list[str]:
     """Names accepted by `make_task`, `TaskConfig.name` and the CLI's --task."""
     return sorted(TASKS)

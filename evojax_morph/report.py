@@ -10,6 +10,7 @@ import numpy as np
 
 from evojax_morph import bodylog, plots, video
 from evojax_morph.confirm import Confirmed
+from evojax_morph.locomotion import gait_word
 from evojax_morph.pipeline import Greedy
 
 
@@ -60,10 +61,12 @@ def gait_entry(found: Confirmed) -> dict:
 
 
 def walks(entry: dict, seconds: float) -> str:
-    """'walks 3.1 m in 5 s, upright 100%' of a confirmed entry ('' without a gait)."""
+    """'walks 3.1 m in 5 s, upright 100% ...' of a confirmed entry, "moves" where it does not
+    walk by `locomotion.gait_word` ('' without a gait)."""
     if entry.get("distance") is None:
         return ""
-    return (f"walks {entry['distance']:.2f} m in {seconds:g} s, upright "
+    word = gait_word(entry["distance"], entry["upright_whole"])
+    return (f"{word} {entry['distance']:.2f} m in {seconds:g} s, upright "
             f"{entry['upright']:.0%} (the whole episode in {entry['upright_whole']:.0%} of "
             "its evaluations)")
 
@@ -112,8 +115,10 @@ def write_results(
         shown = video.render(out, "best", mp4=False)
         for note in shown.notes:
             print(f"best.gif: {note}")
-        walked = shown.replay.distance[-1]
-        written += f" best.gif (drawn by {shown.backend}; the best body walks {walked:.2f} m)"
+        moved = shown.replay.distance[-1]
+        which = ("its best confirming controller (the confirmed gait above is the mean over "
+                 "all of them)" if summary["confirmed"] else "its first controller")
+        written += f" best.gif (drawn by {shown.backend}: {which}, {moved:.2f} m in its episode)"
     elif not saved:
         print("\nno controllers to keep: the fitness trains none (only ppo does), so no best.gif")
     phase("best_gif")

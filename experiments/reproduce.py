@@ -223,7 +223,7 @@ def compare_effects(runs: dict[str, dict]) -> dict:
             "mean": float(means.mean()), "ci95": list(t_interval(means)), "seeds": len(means),
         }
     differences = {}
-    for ref in ("evolution", "random"):
+    for ref in ("regularized_evolution", "evolution", "random"):
         for agent in agents:
             if ref not in agents or agent == ref or f"{ref} - {agent}" in differences:
                 continue
@@ -234,8 +234,14 @@ def compare_effects(runs: dict[str, dict]) -> dict:
                 "difference": float(np.mean(a) - np.mean(b)), "ci95": [float(ci.low),
                                                                        float(ci.high)],
                 "df": float(test.df), "p": float(test.pvalue)}
+    order = sorted(differences, key=lambda pair: differences[pair]["p"])
+    running = 0.0  # Holm's step-down adjustment over every difference at once
+    for i, pair in enumerate(order):
+        running = max(running, min(1.0, (len(order) - i) * differences[pair]["p"]))
+        differences[pair] |= {"p_holm": running, "significant_holm": running < 0.05}
     return {"agents": agents, "differences": differences,
-            "interval": "agents: 95% t over seeds; differences: 95% Welch t over seeds"}
+            "interval": "agents: 95% t over seeds; differences: 95% Welch t over seeds, "
+                        "p Holm-adjusted over all of them (p_holm)"}
 
 
 def unroll_bodies(space, unroll: dict) -> list:
