@@ -335,7 +335,8 @@ def draw(data: Path, out: Path) -> None:
                           yerr=[[e["mean"] - e["ci95"][0]], [e["ci95"][1] - e["mean"]]])
             ax_g.plot([i - 0.15, i + 0.15], [e["returned_draw"], e["confirmed"]], "-o", ms=4,
                       color=colors[agent], alpha=0.7)
-        names = list(effects["agents"])
+        short = lambda text: text.replace("regularized_evolution", "reg. evol.")  # noqa: E731
+        names = [short(n) for n in effects["agents"]]
         ax_m.set_xticks(range(len(names)), names)
         ax_m.set_title("each run's returned body, confirmed (colour);\n"
                        "mean over seeds with 95% t-CI (black)", fontsize=10)
@@ -344,9 +345,13 @@ def draw(data: Path, out: Path) -> None:
             lo, hi = d["difference"] - d["ci95"][0], d["ci95"][1] - d["difference"]
             ax_d.errorbar(j, d["difference"], yerr=[[lo], [hi]], fmt="s", capsize=5, color="k")
         ax_d.axhline(0.0, color="0.5", lw=0.8)
-        ax_d.set_xticks(range(len(effects["differences"])), list(effects["differences"]),
-                        rotation=20, fontsize=8)
-        ax_d.set_title("difference of the means over seeds,\n95% Welch t-CI", fontsize=10)
+        ax_d.set_xticks(range(len(effects["differences"])),
+                        [short(d) for d in effects["differences"]], rotation=30, fontsize=8,
+                        ha="right")
+        ax_d.set_title("difference of the means over seeds,\n95% Welch t-CI (none holds "
+                       "after Holm)" if not any(d["significant_holm"] for d in
+                                                 effects["differences"].values())
+                       else "difference of the means over seeds,\n95% Welch t-CI", fontsize=10)
         ax_d.set(ylabel="confirmed fitness difference")
         ax_g.set_xticks(range(len(names)), names)
         ax_g.set_yscale("log")
