@@ -130,6 +130,12 @@ def test_confirm_interval_and_values(walker, tmp_path):
         np.testing.assert_array_equal(f.values, by_row[r])
     with pytest.raises(ValueError, match="at least 2"):
         em.confirm(space, em.stack(bodies[:2]), key, cfg, 1)
+    # unranked: in the order of the bodies, a body given twice measured twice, apart
+    again = em.confirm(space, em.stack([bodies[r] for r in rows + [7]]), key, cfg, c,
+                       ranked=False)
+    assert [f.body for f in again] == [space.canonical(bodies[r]) for r in rows + [7]]
+    np.testing.assert_array_equal(again[1].values, by_row[7])
+    assert not np.array_equal(again[1].values, again[3].values)
 
 
 def test_body_log_ranks_by_mean(tmp_path):

@@ -6,10 +6,12 @@ import argparse
 import json
 from pathlib import Path
 
+import jax
+import numpy as np
 import pytest
 
 from evojax_morph.spaces import make_space
-from experiments import reproduce
+from experiments import compare_table, reproduce
 
 
 @pytest.mark.slow
@@ -98,13 +100,28 @@ def test_an_unroll_is_rebuilt_from_its_recorded_mutations():
         reproduce.unroll_bodies(space, wrong)
 
 
+def test_every_run_confirms_with_keys_of_its_own():
+    """Issue 60: no two groups of `reproduce` (each body of a group takes its own splits), and no
+    two runs of `compare_table` (method, K, budget, seed), share a confirming key."""
+    names = [*reproduce.GROUPS, *reproduce.UNROLLS]
+    keys = {tuple(np.asarray(jax.random.key_data(reproduce.group_key(11, n))).ravel())
+            for n in names}
+    assert len(keys) == len(names)
+    runs = [compare_table.confirm_keys(m, k, e, 50) for m in ("evolution", "random")
+            for k in (1, 4) for e in (2_000, 10_000)]
+    assert len({tuple(np.asarray(key).ravel()) for ks in runs for key in ks}) == 8 * 50
+
+
 def test_the_walking_comparison_gives_every_method_10_seeds_of_equal_evaluations():
-    """The walking task's comparison (issue 44): at least 10 seeds a method, the same
-    evaluations a run for every method, whole episodes of the Constructor's horizon."""
+    """The walking task's comparison (issues 44, 60): every method, the regularized evolution
+    too, at least 10 seeds a method, the same evaluations a run for every method, whole
+    episodes of the Constructor's horizon."""
     walk = reproduce.groups(argparse.Namespace(task="walk", toy=False, space="constructor",
                                                episodes=2))
     compare = [g for name, g in walk.items() if name.startswith("compare_")]
-    assert len(compare) == 4 and all(g.seeds >= 10 for g in compare)
+    assert {g.agent for g in compare} == {"a2c", "ddqn", "evolution", "regularized_evolution",
+                                          "random"}
+    assert all(g.seeds >= 10 for g in compare)
     assert len({g.num_envs * g.steps for g in compare}) == 1
     horizon = make_space("constructor").horizon
     assert all(g.steps % horizon == 0 and g.space == "constructor" for g in compare)
@@ -116,6 +133,6 @@ def test_the_walking_comparison_gives_every_method_10_seeds_of_equal_evaluations
     crawler = reproduce.groups(argparse.Namespace(task="walk", toy=False, space="crawler",
                                                   episodes=2))
     moved = [g for name, g in crawler.items() if name.startswith("compare_")]
-    assert len(moved) == 4 and all(g.space == "crawler" and g.seeds == 5 for g in moved)
+    assert len(moved) == 5 and all(g.space == "crawler" and g.seeds == 5 for g in moved)
     assert all(g.steps == 2 * make_space("crawler").default_horizon for g in moved)
     assert crawler["fig8"] == reproduce.GROUPS["fig8"]
