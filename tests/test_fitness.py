@@ -1,6 +1,7 @@
 """Batched NGE fitness: learning, inheritance, batching, and the masked PPO pieces."""
 
 import dataclasses
+import json
 from typing import NamedTuple
 
 import chex
@@ -313,3 +314,11 @@ def test_gae_with_termination_and_truncation_matches_a_loop():
             expected[t, e] = acc
     np.testing.assert_allclose(np.asarray(targets) - values, expected, rtol=1e-5, atol=1e-5)
     assert np.all(np.asarray(adv)[truncated == 1] == 0)
+
+
+def test_a_fitness_config_rebuilds_from_its_dict():
+    """`FitnessConfig.from_dict(c.to_dict()) == c`, every field away from its default (a saved
+    controller's config: `classes` was once dropped, replaying on the wrong template)."""
+    c = em.FitnessConfig(kind="ppo", task=em.make_task("walk"), ppo=em.standard_ppo(123, 3),
+                         classifier="dir", physics="warp", table="t.npz", classes=True)
+    assert em.FitnessConfig.from_dict(json.loads(json.dumps(c.to_dict()))) == c

@@ -66,7 +66,7 @@ class FitnessConfig:
         tuples = lambda c: {k: tuple(v) if isinstance(v, list) else v for k, v in c.items()}
         return cls(kind=d["kind"], task=TaskConfig(**d["task"]), ppo=PPOConfig(**tuples(d["ppo"])),
                    classifier=d["classifier"], physics=d.get("physics", "jax"),
-                   table=d.get("table", ""))
+                   table=d.get("table", ""), classes=d.get("classes", False))
 
 
 @struct.dataclass
