@@ -325,8 +325,8 @@ def table_lines(summary: dict) -> list[str]:
              f"[{gap['ci'][0]:.1f}, {gap['ci'][1]:.1f}], P(first better) "
              f"{gap['p_first_better']:.2f} ({gap['results']} results; each body's resampled); "
              f"{len(st['indistinguishable_from_best'])} bodies indistinguishable from the best",
-             "K  rule            method                median regret [95% CI]    mean regret [95% CI]      "
-             "median rank  optimum  tied  s/run"]
+             "K  rule            method                median regret [95% CI]    "
+             "mean regret [95% CI]      median rank  optimum  tied  s/run"]
     for k in sorted(summary["results"], key=int):
         for rule in RULES:
             by = st[k][rule]
@@ -404,7 +404,8 @@ def main():
     print("\n".join(table_lines(summary)))
 
     ks = sorted((k for k in summary["results"] if summary["results"][k]), key=int)
-    fig, axes = plt.subplots(1, len(ks), figsize=(4.2 * len(ks), 3.6), sharey=True, squeeze=False)
+    fig, axes = plt.subplots(1, len(ks), figsize=(max(4.2 * len(ks), 7.0), 4.0), sharey=True,
+                             squeeze=False)
     for ax, k in zip(axes[0], ks):
         for method, r in summary["results"][k].items():
             curve = np.asarray(r["curve"])
@@ -416,8 +417,9 @@ def main():
         ax.set(title=f"K = {k}", xlabel="fitness evaluations per run")
     axes[0][0].set(ylabel="true fitness of the body returned")
     axes[0][0].legend(fontsize=8)
-    fig.suptitle(f"{s.space} table, {s.seeds} seeds: median, .25-.75 band (x: the confirmed "
-                 "rule's median at the end)")
+    which = f"{s.space} table" + (f" ({table.task})" if s.table else "")
+    fig.suptitle(f"{which}, {s.seeds} seeds: the best-so-far body's median, .25-.75 band\n"
+                 "(x: the confirmed rule's median at the end)", fontsize=10)
     save(fig, out, name, summary)
 
 

@@ -114,8 +114,9 @@ def test_evolution_is_elitist_and_finds_the_optimum():
     assert population.min() >= float(space.predefined_fitness(space.initial()))
     # 192 evaluations find Bad Walker's best body in nearly every seed (half of them measure
     # the survivors again, which a deterministic fitness does not need). Measured on 2 CPU
-    # cores (jax 0.10.2, `evolution_search(range(100, 148))`): 47 of seeds 100-147 (one ends at 1.0); at 96
-    # evaluations 33 of 48. 9 of 12 fail only if 4 of 12 miss: about 1 in 10^4 at 1 in 48.
+    # cores (jax 0.10.2, `evolution_search(range(100, 148))`): 47 of seeds 100-147 (one ends
+    # at 1.0); at 96 evaluations 33 of 48. 9 of 12 fail only if 4 of 12 miss: about 1 in 10^4
+    # at 1 in 48.
     optimum = max(float(space.predefined_fitness(m)) for m in reachable(space))
     found = np.abs(best[:, -1] - optimum) < 1e-6
     assert found.mean() >= 0.75, best[:, -1]
