@@ -44,8 +44,8 @@ class RunConfig:
     hidden: int = 64  # GNN width
     explore_steps: int = 20  # (qr)dqn: environment steps over which epsilon anneals to 0.05
     learning_starts: int = 32  # (qr)dqn: transitions stored before the Q-network learns
-    population: int = 0  # regularized_evolution: members; 0: 4 num_envs
-    tournament: int = 0  # regularized_evolution: members sampled per tournament; 0: population/4
+    population: int = 0  # regularized_evolution: members; 0: 2 num_envs
+    tournament: int = 0  # regularized_evolution: members sampled per tournament; 0: population/8
     chunk: int = 5  # environment steps per jitted call
     checkpoint_every: int = 1  # chunks between checkpoints
     confirm: int = 4  # bodies of the highest mean evaluated again at the end; 0: none

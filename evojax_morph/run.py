@@ -316,10 +316,10 @@ def add_agent_flags(group, defaults: RunConfig) -> None:
     add("--learning-starts", type=int, default=defaults.learning_starts,
         help="ddqn, dqn, qrdqn: transitions stored before learning")
     add("--population", type=int, default=defaults.population,
-        help="regularized_evolution: members, at least --num-envs (0: 4 x --num-envs)")
+        help="regularized_evolution: members, at least --num-envs (0: 2 x --num-envs)")
     add("--tournament", type=int, default=defaults.tournament,
         help="regularized_evolution: members sampled per tournament, 1 to --population "
-        "(0: a quarter of the population)")
+        "(0: an eighth of the population)")
 
 
 def add_confirm_flags(group, defaults: RunConfig) -> None:

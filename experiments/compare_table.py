@@ -363,6 +363,9 @@ def main():
     parser.add_argument("--methods", default=",".join(list_agents()),
                         help="comma-separated subset of " + ",".join(list_agents()))
     parser.add_argument("--out", default="runs/figures")
+    parser.add_argument("--swap-in", default="",
+                        help="a tuning variant's data file (--tag): print the statistics with "
+                        "its methods' runs in place of this file's, at the K both hold; no run")
     args = parser.parse_args()
     s = Settings(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Settings)})
     space = make_space(s.space)
@@ -400,6 +403,13 @@ def main():
                   f"({time.time() - start:.0f} s in all)", flush=True)
             out.mkdir(parents=True, exist_ok=True)
             path.write_text(json.dumps(summary, indent=1))
+    if args.swap_in:  # a tuned variant against the others' runs: printed, nothing written
+        variant = json.loads(Path(args.swap_in).read_text())["results"]
+        swapped = {k: {**by, **variant.get(k, {})} for k, by in summary["results"].items()}
+        print(f"with the runs of {args.swap_in} swapped in:")
+        print("\n".join(table_lines({**summary, "results": swapped,
+                                     "stats": stats(swapped, table.fitness)})))
+        return
     summary["stats"] = stats(summary["results"], table.fitness)
     print("\n".join(table_lines(summary)))
 
