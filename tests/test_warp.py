@@ -472,9 +472,12 @@ print("RESULT", json.dumps({"four": np.asarray(four.fitness).tolist(),
 @pytest.mark.slow  # a Python of 4 devices compiling Warp's CPU kernels and two PPO programs
 def test_warp_on_four_devices_gives_one_devices_fitness():
     """The Warp fitness split over 4 devices (`shard_map`, each device its own worlds, where
-    `sharding.MANUAL_SPLIT`) gives one device's: float32, and the programs differ in batch, so
-    to rounding (measured 3e-7 relative at 320 PPO steps on 2 CPU devices); and a step of the
-    agents' loop around it compiles and runs."""
+    `sharding.MANUAL_SPLIT`) gives one device's: float32, and the programs differ in batch (2
+    bodies a device against 6 on one), so to rounding that 320 PPO steps amplify. Measured: 3e-7
+    relative on 2 CPU devices (2026-11-25), 1.4e-3 on 4 devices of CI's AMD EPYC (2026-11-28,
+    the same package versions); the tolerance is 1e-2, below the gap between the two nearest
+    bodies (-0.71 and -0.67: 5%), so a body given another's fitness still fails. And a step of
+    the agents' loop around it compiles and runs."""
     import warp
     from conftest import on_four_devices
 
@@ -484,5 +487,8 @@ def test_warp_on_four_devices_gives_one_devices_fitness():
     assert got["devices"] == 4
     assert np.shape(got["step"]) == (1, 4)  # one step's fitness of each of the 4 evolutions
     assert np.isfinite(got["step"]).all()
-    np.testing.assert_allclose(got["four"], got["one"], rtol=1e-4, atol=1e-4)
-    assert np.ptp(got["one"]) > 1.0  # different bodies, different fitness: a mix-up would show
+    np.testing.assert_allclose(got["four"], got["one"], rtol=1e-2, atol=1e-3)
+    one = np.asarray(got["one"])
+    gaps = np.abs(one[:, None] - one[None, :]) + np.diag(np.full(6, np.inf))
+    assert (gaps > 2 * (1e-3 + 1e-2 * np.abs(one))).all()  # the bodies lie further apart than
+    # the tolerance, so a body given another's fitness fails
