@@ -13,7 +13,6 @@ runs the same program on the same arguments (SPMD).
 from __future__ import annotations
 
 import functools
-import warnings
 from collections.abc import Callable
 
 import jax
@@ -39,23 +38,6 @@ def replicated(mesh: Mesh) -> NamedSharding:
     return NamedSharding(mesh, PartitionSpec())
 
 
-# MuJoCo Warp's call under `jax.shard_map` compiles with jax 0.10 (Shardy, the default
-# partitioner) and not with jax 0.11.2: Shardy segfaults in its canonicaliser
-# (ManualComputationUnusedInputsPattern), on the CPU and on GPUs, for one Warp step of a free
-# sphere; GSPMD instead fails a check on a sort (CPU) or hangs a run (2 H100s). Measured
-# 2026-11-26, docs/benchmarks.md "The Warp fitness across GPUs".
-MANUAL_SPLIT = jax.__version_info__ < (0, 11)
-
-
-@functools.cache
-def _warn_no_manual_split() -> None:
-    warnings.warn(
-        f"jax {jax.__version__}: MuJoCo Warp's batch is not split across devices (XLA's "
-        "partitioners fail on it under shard_map from jax 0.11), so every device steps the "
-        "whole batch: correct, not faster. jax<0.11 splits it (docs/benchmarks.md).",
-        stacklevel=3)
-
-
 def shard_batch(fn: Callable, mesh: Mesh | None = None, manual: bool = False) -> Callable:
     """`fn` with the leading (batch) axis of every argument and output split across `mesh`.
 
@@ -66,9 +48,7 @@ def shard_batch(fn: Callable, mesh: Mesh | None = None, manual: bool = False) ->
         returned unchanged.
       manual: split with `jax.shard_map` (each device runs `fn` on its own B / n elements) rather
         than by XLA's partitioner: for a `fn` that calls a foreign function (MuJoCo Warp's FFI
-        call), which the partitioner cannot split and runs whole on every device. Only where
-        `MANUAL_SPLIT` (jax < 0.11); elsewhere a warning, and the constraints as without it
-        (Warp then runs whole on every device).
+        call), which the partitioner cannot split and runs whole on every device.
     Returns:
       A function of the same signature, for use inside `jax.jit`. B need not divide the device
       count: the batch is padded with copies of its first element, whose results are dropped.
@@ -88,11 +68,12 @@ def shard_batch(fn: Callable, mesh: Mesh | None = None, manual: bool = False) ->
     constrain = lambda tree: jax.tree.map(
         lambda x: jax.lax.with_sharding_constraint(x, split), tree
     )
-    if manual and not MANUAL_SPLIT:
-        _warn_no_manual_split()
-        manual = False
     if manual:  # each argument and output split on its leading axis
-        body = jax.shard_map(fn, mesh=mesh, in_specs=PartitionSpec(AXIS),
+        # `fn` jitted on its own inside the shard_map: unjitted, MuJoCo Warp's call in it
+        # segfaults jax 0.11.2's Shardy (ManualComputationUnusedInputsPattern) and fails
+        # GSPMD's checks; jitted, it compiles with jax 0.10.2, 0.11.2 and 0.12 (CPU,
+        # 2026-11-28, docs/benchmarks.md "The Warp fitness across GPUs").
+        body = jax.shard_map(jax.jit(fn), mesh=mesh, in_specs=PartitionSpec(AXIS),
                              out_specs=PartitionSpec(AXIS), check_vma=False)
     else:
         body = lambda *args: constrain(fn(*constrain(args)))  # noqa: E731

@@ -32,13 +32,13 @@ one = em.evaluate(space, morphs, keys, cfg, mesh=batch_mesh(jax.devices()[:1]))
 devices = {d.id for d in four.params.policy["params"]["hidden_0"]["kernel"].sharding.device_set}
 # the two ways to split: each device sees the whole padded batch (XLA partitions the program)
 # or its own quarter (shard_map, for Warp's foreign call)
-from evojax_morph.sharding import MANUAL_SPLIT, shard_batch
+from evojax_morph.sharding import shard_batch
 seen = lambda x: jax.numpy.full_like(x, x.shape[0])
 split = {m: np.asarray(jax.jit(shard_batch(seen, manual=m))(jax.numpy.arange(6.0))).tolist()
          for m in (False, True)}
 print("RESULT", json.dumps({"four": np.asarray(four.fitness).tolist(),
                             "one": np.asarray(one.fitness).tolist(), "devices": len(devices),
-                            "split": split, "manual_split": MANUAL_SPLIT}))
+                            "split": split}))
 """
 
 
@@ -46,7 +46,6 @@ print("RESULT", json.dumps({"four": np.asarray(four.fitness).tolist(),
 def test_four_devices_give_one_devices_fitness():
     got = json.loads(on_four_devices(FITNESS_ON_FOUR).stdout.split("RESULT ")[1])
     assert got["devices"] == 4  # the trained controllers really were spread over the devices
-    # 6 padded to 8; jax >= 0.11 does not split by shard_map (sharding.MANUAL_SPLIT)
-    assert got["split"] == {"false": [8.0] * 6, "true": [2.0 if got["manual_split"] else 8.0] * 6}
+    assert got["split"] == {"false": [8.0] * 6, "true": [2.0] * 6}  # 6 padded to 8
     np.testing.assert_allclose(got["four"], got["one"], rtol=1e-5, atol=1e-5)
     assert np.ptp(got["one"]) > 1.0  # different bodies, different fitness: a mix-up would show

@@ -456,15 +456,13 @@ devices = {d.id for d in four.params.policy["params"]["hidden_0"]["kernel"].shar
 # 0.10, jax 0.11 hung it on 2 GPUs; it has to compile and run, not only `evaluate`
 from evojax_morph.agents import dqn
 from evojax_morph.pipeline import RunConfig, build
-from evojax_morph.sharding import MANUAL_SPLIT
 run = RunConfig(space="bad_walker", agent="ddqn", num_envs=4, horizon=2, train_steps=320,
                 physics="warp")
 init, chunk, _ = build(run, batch_mesh(), dqn.DQNConfig(learning_starts=0)).agent
 _, metrics = chunk(jax.jit(init)(jax.random.PRNGKey(0)), 1)
 print("RESULT", json.dumps({"four": np.asarray(four.fitness).tolist(),
                             "one": np.asarray(one.fitness).tolist(), "devices": len(devices),
-                            "step": np.asarray(metrics["fitness"]).tolist(),
-                            "split": MANUAL_SPLIT}))
+                            "step": np.asarray(metrics["fitness"]).tolist()}))
 """
 
 
