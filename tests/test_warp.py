@@ -438,6 +438,7 @@ def test_set_deterministic_reaches_mujoco_warp():
 
 WARP_ON_FOUR = r"""
 import json
+import re
 import jax
 import numpy as np
 import evojax_morph as em
@@ -452,6 +453,11 @@ morphs = jax.vmap(space.random_morphology, (0, None))(keys, 3)
 four = em.evaluate(space, morphs, keys, cfg)
 one = em.evaluate(space, morphs, keys, cfg, mesh=batch_mesh(jax.devices()[:1]))
 devices = {d.id for d in four.params.policy["params"]["hidden_0"]["kernel"].sharding.device_set}
+# the leading axes of what Warp's calls return in the 4-device program: the worlds they step
+from evojax_morph.fitness import lower_evaluate
+text = lower_evaluate(space, 6, cfg)[-1].as_text()
+calls = [line.split("->")[-1] for line in text.splitlines() if "custom_call @jax_callable" in line]
+worlds = sorted({int(n) for call in calls for n in re.findall(r"tensor<(\d+)x", call)})
 # the agents' loop around it (m0, one Double-DQN step): GSPMD failed to compile it under jax
 # 0.10, jax 0.11 hung it on 2 GPUs; it has to compile and run, not only `evaluate`
 from evojax_morph.agents import dqn
@@ -462,20 +468,20 @@ init, chunk, _ = build(run, batch_mesh(), dqn.DQNConfig(learning_starts=0)).agen
 _, metrics = chunk(jax.jit(init)(jax.random.PRNGKey(0)), 1)
 print("RESULT", json.dumps({"four": np.asarray(four.fitness).tolist(),
                             "one": np.asarray(one.fitness).tolist(), "devices": len(devices),
-                            "step": np.asarray(metrics["fitness"]).tolist()}))
+                            "step": np.asarray(metrics["fitness"]).tolist(), "worlds": worlds}))
 """
 
 
 @requires_warp
 @pytest.mark.slow  # a Python of 4 devices compiling Warp's CPU kernels and two PPO programs
 def test_warp_on_four_devices_gives_one_devices_fitness():
-    """The Warp fitness split over 4 devices (`shard_map`, each device its own worlds, where
-    `sharding.MANUAL_SPLIT`) gives one device's: float32, and the programs differ in batch (2
-    bodies a device against 6 on one), so to rounding that 320 PPO steps amplify. Measured: 3e-7
-    relative on 2 CPU devices (2026-11-25), 1.4e-3 on 4 devices of CI's AMD EPYC (2026-11-28,
-    the same package versions); the tolerance is 1e-2, below the gap between the two nearest
-    bodies (-0.71 and -0.67: 5%), so a body given another's fitness still fails. And a step of
-    the agents' loop around it compiles and runs."""
+    """The Warp fitness split over 4 devices (`shard_map`, each device stepping its own worlds)
+    gives one device's: float32, and the programs differ in batch (2 bodies a device against 6
+    on one), so to rounding that 320 PPO steps amplify. Measured: 3e-7 relative on 2 CPU
+    devices (2026-11-25), 1.4e-3 on 4 devices of CI's AMD EPYC (2026-11-28, the same package
+    versions); the tolerance is 1e-2, below the gap between the two nearest bodies (-0.71 and
+    -0.67: 5%), so a body given another's fitness still fails. And a step of the agents' loop
+    around it compiles and runs."""
     import warp
     from conftest import on_four_devices
 
@@ -483,6 +489,9 @@ def test_warp_on_four_devices_gives_one_devices_fitness():
         pytest.skip("warp-lang here cannot compile CPU kernels (no LLVM)")
     got = json.loads(on_four_devices(WARP_ON_FOUR).stdout.split("RESULT ")[1])
     assert got["devices"] == 4
+    # each device's Warp calls step its own 2 bodies x 8 envs, not the padded batch's 8 x 8
+    # (unsplit on jax 0.11 and 0.12 before 2026-11-28)
+    assert 16 in got["worlds"] and 64 not in got["worlds"], got["worlds"]
     assert np.shape(got["step"]) == (1, 4)  # one step's fitness of each of the 4 evolutions
     assert np.isfinite(got["step"]).all()
     np.testing.assert_allclose(got["four"], got["one"], rtol=1e-2, atol=1e-3)
