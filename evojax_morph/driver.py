@@ -28,6 +28,7 @@ import numpy as np
 
 from evojax_morph import bodylog, checkpoints, controllers, video
 from evojax_morph.confirm import Confirmed, confirm, lower_confirm
+from evojax_morph.engines import registered
 from evojax_morph.fitnesses import get_fitness
 from evojax_morph.morphology import Morphology
 from evojax_morph.pipeline import Greedy, Pipeline, RunConfig, build, make_greedy_rollout
@@ -52,12 +53,11 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     """Runs `cfg` in the directory `out` (checked writable), from its last checkpoint if
     `resume`, drawing best.gif at the end if `gif`; every process calls it, process 0 writes
     the files and prints. The programs called after m0's compile ahead (`compile_ahead`)."""
-    # Lowered on the warmup thread while m0 compiles and runs, and compiled there unless Warp
-    # runs on a GPU, where a compile's autotuning breaks a Warp call's graph capture (`warmup`).
-    # With Warp on several GPUs not even lowered ahead (runs there hung; `warmup`).
-    warp_gpu = cfg.physics == "warp" and jax.default_backend() == "gpu"
-    ahead = Warmup(on=False if warp_gpu and jax.device_count() > 1 else None,
-                   compiles=not warp_gpu)
+    # Lowered on the warmup thread while m0 compiles and runs, and compiled there unless the
+    # engine captures graphs on a GPU (MuJoCo Warp), which a compile's autotuning breaks
+    # (`warmup`); on several GPUs then not even lowered ahead (runs there hung; `warmup`).
+    graphs = registered(cfg.physics).graph_capture and jax.default_backend() == "gpu"
+    ahead = Warmup(on=False if graphs and jax.device_count() > 1 else None, compiles=not graphs)
     try:
         _execute(cfg, out, resume, gif, ahead)
     finally:

@@ -47,7 +47,7 @@ from evojax_morph import ppo
 from evojax_morph.fitnesses import table as tables
 from evojax_morph.run import start_deterministic
 
-GPU_TRAIN_STEPS = 50_000  # `run`'s GPU budget per controller (evojax_morph.run.gpu_defaults)
+GPU_TRAIN_STEPS = 50_000  # `run`'s GPU budget per controller (`Space.gpu_defaults`)
 
 
 def engine_flags() -> list[str]:

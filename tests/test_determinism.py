@@ -38,11 +38,11 @@ def test_switch_before_the_backend_starts_and_refused_after():
 def test_run_asks_for_deterministic_ops_unless_the_ppo_fitness_may_step_on_warp(
     tmp_path, monkeypatch
 ):
-    from evojax_morph import run
+    from evojax_morph import engines, run
 
     asked = []
     monkeypatch.setattr(run, "deterministic_gpu", lambda: asked.append(True))
-    monkeypatch.setattr(run, "warp_imports", lambda: True)
+    monkeypatch.setattr(engines, "warp_imports", lambda: True)
 
     def asks(*argv) -> bool:
         asked.clear()
@@ -55,7 +55,7 @@ def test_run_asks_for_deterministic_ops_unless_the_ppo_fitness_may_step_on_warp(
     assert not asks("--physics", "warp", "--fast-gpu")
     assert asks("--physics", "warp", "--fitness", "table")  # no physics: reproducible
     assert asks("--fitness", "tame")  # tame runs on the JAX engine
-    monkeypatch.setattr(run, "warp_imports", lambda: False)
+    monkeypatch.setattr(engines, "warp_imports", lambda: False)
     assert asks()  # auto without Warp: the JAX engine
     assert not asks("--fast-gpu")
     # a --resume follows the run's saved config, not the defaults
