@@ -25,7 +25,7 @@ from pathlib import Path
 import jax
 
 from evojax_morph import agents, checkpoints, driver
-from evojax_morph.determinism import deterministic_gpu, persistent_cache
+from evojax_morph.determinism import deterministic_gpu, full_precision, persistent_cache
 from evojax_morph.engines import AUTO, list_engines, may_take, registered
 from evojax_morph.fitnesses import Inputs, get_fitness, list_fitnesses, resolve_physics
 from evojax_morph.locomotion import list_tasks, make_task
@@ -368,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     start_distributed(args)
     cfg, out, resume, gif = parse(argv)
     barrier("parsed")  # every process checked --out before any of them writes there
-    jax.config.update("jax_default_matmul_precision", "highest")
+    full_precision()  # the agents' networks too, not only the PPO fitness (`full_precision`)
     persistent_cache()  # a second run of the same shapes skips XLA's compiles
     try:
         driver.execute(cfg, out, resume, gif)

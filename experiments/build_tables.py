@@ -44,6 +44,7 @@ import numpy as np
 
 import evojax_morph as em
 from evojax_morph import ppo
+from evojax_morph.determinism import full_precision
 from evojax_morph.fitnesses import table as tables
 from evojax_morph.run import start_deterministic
 
@@ -230,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--deep-seeds must exceed --seeds")
     args.out = args.out or str(tables.default_path(args.space))
     args.argv = argv
-    jax.config.update("jax_default_matmul_precision", "highest")  # as the run command
+    full_precision()  # as the run command
     build(args)
     return 0
 

@@ -115,10 +115,6 @@ class Table:
         knows."""
         return np.nanmean(self.fitness, 1)
 
-    def sem(self) -> np.ndarray:
-        """(T,) the standard error of each body's mean."""
-        return np.nanstd(self.fitness, 1, ddof=1) / np.sqrt(self.counts())
-
     def row(self, space: Space, m: Morphology) -> int:
         """The row of body `m` (outside jit); a ValueError naming it if the table lacks it."""
         name = space.canonical(m)
