@@ -82,7 +82,7 @@ class Run(NamedTuple):
 
     cfg: RunConfig
     out: Path
-    gif: bool
+    gif: bool  # draw best.gif: asked for, and the fitness trains controllers (decided once)
     p: Pipeline
     lead: bool  # the process that writes files and prints
     log: Callable  # print on the lead process, else nothing
@@ -94,13 +94,15 @@ class Run(NamedTuple):
 
 
 class Evolved(NamedTuple):
-    """What the evolve stage hands down: the agent state after `step` steps and the record."""
+    """What the evolve stage hands down: the agent state after `step` steps, the record and the
+    greedy rollout of the trained agent."""
 
     state: object
     step: int
     rows: list[dict]  # metrics.csv's
     chunk_seconds: list[tuple[int, float]]  # (steps, wall clock) of each chunk; the first compiles
     dispatch: float | None  # seconds until the first chunk call returns (`timing`)
+    greedy: Greedy | None  # None for the baselines: no policy to roll out
 
 
 class Best(NamedTuple):
@@ -108,7 +110,6 @@ class Best(NamedTuple):
 
     morph: Morphology
     fitness: float
-    greedy: Greedy | None
     record: dict  # confirmed.json's
     top: Confirmed | None  # the confirmed best, when evaluated now
     saved: list[str]  # the controllers saved
@@ -120,8 +121,7 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
     run, step, state = _build(cfg, out, resume, gif, ahead)
     step, state, rows = _warm_up(run, step, state, ahead)
     clock.phase("build_and_m0")
-    evolved = _evolve(run, step, state, rows, ahead)
-    clock.phase("steps")
+    evolved = _evolve(run, step, state, rows, ahead, clock)
     best = _confirm(run, evolved, ahead, clock)
     if run.lead:
         _report(run, evolved, best, clock)
@@ -137,6 +137,7 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup):
     if lead and not resume:
         write_config()
     p = build(cfg)
+    gif = gif and controllers.has_controllers(p.fitness)  # asked for, and a controller to show
     log = print if lead else (lambda *a, **k: None)
     log(f"evojax_morph: {cfg.agent} on {cfg.space} with {cfg.fitness} fitness, {cfg.num_envs} "
         f"parallel evolutions x {cfg.steps} steps, horizon {p.env.horizon}, on "
@@ -190,9 +191,10 @@ def _warm_up(run: Run, step, state, ahead: Warmup):
     return 0, state, []
 
 
-def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup) -> Evolved:
+def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: Clock) -> Evolved:
     """The steps from `step` to cfg.steps, chunk by chunk: metrics.csv, the body log and
-    TensorBoard after each chunk, a checkpoint every cfg.checkpoint_every chunks and at the end."""
+    TensorBoard after each chunk, a checkpoint every cfg.checkpoint_every chunks and at the end;
+    then the trained agent's greedy rollout (an agent with a policy)."""
     from tensorboardX import SummaryWriter
     from tqdm import tqdm
 
@@ -229,7 +231,14 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup) -> Evol
     if lead:
         writer.close()
         run.bodies.close()
-    return Evolved(state, step, rows, chunk_seconds, dispatch)
+    clock.phase("steps")
+    greedy = None
+    if run.greedy_rollout is not None:
+        ahead.wait("greedy")
+        greedy = run.greedy_rollout(state.learner, state.first, run.key_greedy)
+    barrier("body log written")  # every process reads it in the confirm stage
+    clock.phase("greedy_rollout")
+    return Evolved(state, step, rows, chunk_seconds, dispatch, greedy)
 
 
 def _record_chunk(run: Run, step: int, n: int, metrics: dict, writer) -> list[dict]:
@@ -260,18 +269,13 @@ def _record_chunk(run: Run, step: int, n: int, metrics: dict, writer) -> list[di
 
 
 def _confirm(run: Run, evolved: Evolved, ahead: Warmup, clock: Clock) -> Best:
-    """The greedy rollout (an agent with a policy), the confirm stage and the controllers of
-    the best body and of the greedy trajectory's, saved; every process calls it."""
+    """The confirm stage, the controllers of the best body and of the greedy trajectory's,
+    saved, and confirmed.json (if confirmed now, by the lead process); every process calls
+    it."""
     p, cfg, state = run.p, run.cfg, evolved.state
     best, best_fitness, best_params = to_host(
         (state.best_morph, state.best_fitness, state.best_params)
     )
-    greedy = None
-    if run.greedy_rollout is not None:
-        ahead.wait("greedy")
-        greedy = run.greedy_rollout(state.learner, state.first, run.key_greedy)
-    barrier("body log written")  # every process reads it in the confirm stage
-    clock.phase("greedy_rollout")
     ahead.wait("confirm")
     record, top = confirm_stage(run.out, p, cfg, evolved.step, run.log)
     clock.phase("confirm")
@@ -279,22 +283,21 @@ def _confirm(run: Run, evolved: Evolved, ahead: Warmup, clock: Clock) -> Best:
     best, best_fitness, best_params, best_cfg = reported_best(
         run.out, p, record, top, (best, float(best_fitness), best_params)
     )
-    saved = save_controllers(run.out, p, cfg.seed, best, best_fitness, best_params, greedy,
-                             best_cfg)
+    saved = save_controllers(run.out, p, cfg.seed, best, best_fitness, best_params,
+                             evolved.greedy, best_cfg)
     clock.phase("controllers")
-    return Best(best, best_fitness, greedy, record, top, saved)
+    if top is not None and run.lead:  # written last: the stage is done, a --resume keeps it
+        record["best_morphology"] = best.to_dict()
+        (run.out / "confirmed.json").write_text(json.dumps(checkpoints.seal(record), indent=1))
+    return Best(best, best_fitness, record, top, saved)
 
 
 def _report(run: Run, evolved: Evolved, best: Best, clock: Clock) -> None:
-    """confirmed.json (if confirmed now), the results (`write_results`) and timing.json; the
-    lead process only."""
+    """The results (`write_results`) and timing.json; the lead process only."""
     out, p = run.out, run.p
-    if best.top is not None:  # written last: the stage is done, a --resume keeps it
-        best.record["best_morphology"] = best.morph.to_dict()
-        (out / "confirmed.json").write_text(json.dumps(checkpoints.seal(best.record), indent=1))
     task = p.fitness.task
-    write_results(out, p.space, evolved.rows, best.morph, best.fitness, best.greedy, evolved.step,
-                  best.saved, run.gif, best.record, clock.phase,
+    write_results(out, p.space, evolved.rows, best.morph, best.fitness, evolved.greedy,
+                  evolved.step, best.saved, run.gif, best.record, clock.phase,
                   task.episode_length * task.frame_skip * p.space.template.opt.timestep)
     times = timing(time.perf_counter() - clock.started, evolved.chunk_seconds) | {
         "phases": clock.phases, "first_chunk_dispatch": evolved.dispatch}
@@ -317,11 +320,11 @@ def compile_ahead(ahead: Warmup, p: Pipeline, cfg: RunConfig, start: int, state,
     if greedy_rollout is not None:
         ahead.compile("greedy", lambda: greedy_rollout.lower(state.learner, state.first,
                                                              key_greedy))
-    confirms = cfg.confirm > 0 and not get_fitness(cfg.fitness).deterministic
+    confirms = confirm_skipped(cfg) is None
     if confirms:
         ahead.compile("confirm", lambda: lower_confirm(p.space, cfg.confirm, p.fitness,
                                                        cfg.confirm_controllers))
-    if gif and controllers.has_controllers(p.fitness) and jax.process_index() == 0:
+    if gif and jax.process_index() == 0:
         shown = p.fitness.with_controllers(cfg.confirm_controllers) if confirms else p.fitness
         ahead.compile("replay", lambda: video.lower_replay(p.space, shown))
         ahead.run("gl", video.choose_gl)
@@ -351,6 +354,18 @@ def reported_best(out: Path, p: Pipeline, record: dict, top: Confirmed | None, d
     return (*draw, p.fitness)
 
 
+def confirm_skipped(cfg: RunConfig) -> str | None:
+    """Why the run's confirm stage evaluates nothing (confirmed.json's note), or None where it
+    does; the one place this is decided (`compile_ahead`, `confirm_stage`): --confirm 0, or a
+    deterministic fitness, whose evaluations again would give the same values."""
+    if cfg.confirm == 0:
+        return "not run (--confirm 0): the best body is the highest single draw, a noisy maximum"
+    if get_fitness(cfg.fitness).deterministic:
+        return (f"not run: the {cfg.fitness} fitness is deterministic, so an evaluation again "
+                "gives the same values; the best body is the highest single draw")
+    return None
+
+
 def confirm_stage(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print):
     """The run's confirm stage; every process calls it, after the body log is written.
 
@@ -376,15 +391,11 @@ def confirm_stage(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print):
         if all(before.get(k) == record[k] for k in ("env_steps", "bodies", "controllers")):
             log("confirm: done when the run finished, kept (confirmed.json)")
             return before, None
-    if n == 0:
-        record["confirm_note"] = ("not run (--confirm 0): the best body is the highest single "
-                                  "draw, a noisy maximum")
-        return record, None
-    if get_fitness(cfg.fitness).deterministic:
-        record["confirm_note"] = (f"not run: the {cfg.fitness} fitness is deterministic, so an "
-                                  "evaluation again gives the same values; the best body is the "
-                                  "highest single draw")
-        log(f"confirm: {record['confirm_note']}")
+    skipped = confirm_skipped(cfg)
+    if skipped:
+        record["confirm_note"] = skipped
+        if n:  # --confirm 0 said so itself
+            log(f"confirm: {skipped}")
         return record, None
     path = out / "bodies.sqlite"
     ranked = bodylog.best_bodies(path, n)

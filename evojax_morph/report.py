@@ -79,7 +79,8 @@ def write_results(
     """summary.json and a printed digest of it, with the best bodies of the body log and the
     confirmed ones (with their gait: metres in an episode of `episode_seconds`, and upright);
     curve.png, best.xml, trajectory.png (if `greedy`), confirmed.png (if the confirm stage's
-    `record` confirmed bodies) and best.gif (if controllers were `saved` and `gif`).
+    `record` confirmed bodies) and best.gif (if `gif`: asked for, and the fitness trains
+    controllers, `driver._build`).
     `phase("results")` is called before best.gif is drawn, `phase("best_gif")` after."""
     log = out / "bodies.sqlite"
     summary = {
@@ -111,7 +112,7 @@ def write_results(
                               greedy.actions)
         written = "trajectory.png " + written
     phase("results")  # before best.gif, drawn last: a failing OpenGL leaves the rest written
-    if saved and gif:
+    if gif:
         shown = video.render(out, "best", mp4=False)
         for note in shown.notes:
             print(f"best.gif: {note}")
