@@ -4,8 +4,8 @@
 directory (`evojax_morph.run` lists its files), as stages each handing its results to the next:
 `_build`, `_warm_up` (m0 or a checkpoint, `checkpoints`), `_evolve` (the steps, then the greedy
 rollout), `_confirm` (`confirm_stage`: the bodies of the highest mean in the body log evaluated
-again from scratch; its best is the run's best body) and `_report` (`report`). Each stage offers
-the programs it will call, which compile ahead (`compile_ahead`).
+again from scratch; its best is the run's best body) and `report.report_stage`. Each stage
+offers the programs it will call, which compile ahead (`compile_ahead`).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from evojax_morph.engines import registered
 from evojax_morph.fitnesses import get_fitness
 from evojax_morph.morphology import Morphology
 from evojax_morph.pipeline import Greedy, Pipeline, RunConfig, build, make_greedy_rollout
-from evojax_morph.report import confirmed_entry, timing, write_results
+from evojax_morph.report import confirmed_entry, report_stage
 from evojax_morph.sharding import barrier, batch_mesh, replicated, to_host
 from evojax_morph.warmup import Warmup
 
@@ -122,7 +122,7 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
     evolved = _evolve(run, step, state, rows, ahead, clock)
     best = _confirm(run, evolved, ahead, clock)
     if run.lead:
-        _report(run, evolved, best, clock)
+        report_stage(run, evolved, best, clock)
 
 
 def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
@@ -285,22 +285,6 @@ def _confirm(run: Run, evolved: Evolved, ahead: Warmup, clock: Clock) -> Best:
         record["best_morphology"] = best.to_dict()
         (run.out / "confirmed.json").write_text(json.dumps(checkpoints.seal(record), indent=1))
     return Best(best, best_fitness, record, top, saved)
-
-
-def _report(run: Run, evolved: Evolved, best: Best, clock: Clock) -> None:
-    """The results (`write_results`) and timing.json; the lead process only."""
-    out, p = run.out, run.p
-    task = p.fitness.task
-    write_results(out, p.space, evolved.rows, best.morph, best.fitness, evolved.greedy,
-                  evolved.step, best.saved, run.gif, best.record, clock.phase,
-                  task.episode_length * task.frame_skip * p.space.template.opt.timestep)
-    times = timing(time.perf_counter() - clock.started, evolved.chunk_seconds) | {
-        "phases": clock.phases, "first_chunk_dispatch": evolved.dispatch}
-    (out / "timing.json").write_text(json.dumps(times, indent=1))
-    if times["step_seconds"]:
-        print(f"time: {times['seconds']:.0f} s, {times['step_seconds']:.3g} s a step, "
-              f"{times['outside_steps_seconds']:.0f} s outside the steps (timing.json; "
-              "imports not counted)")
 
 
 class Job(NamedTuple):
