@@ -21,7 +21,14 @@ from evojax_morph.spaces import Space, list_spaces, make_space
 from evojax_morph.video import render as render_video
 from evojax_morph.video import replay
 
-cpu_scheduler_workaround()  # before any JAX backend starts: see evojax_morph/determinism.py
+# The one side effect of importing evojax_morph, and it must stay here: XLA's CPU runtime of
+# this jaxlib (0.10.2) can deadlock running a large vmapped MJX program (the Constructor's
+# template, 50 bodies: determinism.py), and XLA reads XLA_FLAGS once, when the first backend
+# starts, so the flag must be in before any user code runs JAX. It only appends
+# `determinism.CPU_FLAG`, and nothing where XLA_FLAGS already sets that scheduler or a backend
+# is up (tests/test_determinism.py). Matplotlib's backend is left alone: the figures draw with
+# Agg canvases of their own (`plots`, `video`).
+cpu_scheduler_workaround()
 
 __all__ = [
     "Confirmed",

@@ -59,6 +59,23 @@ def cpu_scheduler_workaround() -> bool:
     return _ask(CPU_FLAG)
 
 
+def full_precision() -> None:
+    """Full float32 matrix products in every program this process traces from now on
+    (`jax_default_matmul_precision` "highest"): the one place a command asks for them.
+
+    On a GPU XLA's default multiplies float32 matrices in TF32, which perturbs physics and RL
+    more than they tolerate. The PPO fitness asks for full precision itself (`ppo.make_train`
+    traces its `train` under `jax.default_matmul_precision("highest")`, wherever it is called),
+    so this matters for what that does not reach: the agents' networks, the TAME classifier and
+    its rollouts, and physics stepped outside a PPO fitness (`experiments.bench_physics`). The
+    `run` command and the experiments call it before they trace anything, so that their programs
+    are the same ones. On a CPU float32 products are full precision either way.
+    """
+    import jax
+
+    jax.config.update("jax_default_matmul_precision", "highest")
+
+
 def persistent_cache(path: str | None = None) -> str:
     """Keeps this process's compiled programs on disk (JAX's persistent compilation cache), so a
     later process compiling the same program loads it instead: the tests and the run command.

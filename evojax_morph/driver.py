@@ -1,15 +1,11 @@
 """The host side of a run: the outer Python loop over jitted chunks, with its files.
 
 `execute(cfg, out, resume)` runs `pipeline.build(cfg)` chunk by chunk and writes the run
-directory: config.json, metrics.csv, bodies.sqlite (every body evaluated, `bodylog`),
-TensorBoard events (tb/), curve.png, trajectory.png, best.xml, summary.json and Orbax
-checkpoints, from which `resume` continues; with the PPO fitness also controllers/ (the trained
-controllers of the best body and of the greedy trajectory's, `controllers`) and best.gif (the
-best body walking, `video`). At the end the confirm stage (`confirm_stage`) evaluates the
-bodies of the highest mean in the body log again from scratch (confirmed.json, confirmed.png);
-its best is the run's best body. The run is a sequence of stages, each handing its results to
-the next: `_build`, `_warm_up` (m0 or a checkpoint, `checkpoints`), `_evolve`, `_confirm` and
-`_report` (`report`).
+directory (`evojax_morph.run` lists its files), as stages each handing its results to the next:
+`_build`, `_warm_up` (m0 or a checkpoint, `checkpoints`), `_evolve` (the steps, then the greedy
+rollout), `_confirm` (`confirm_stage`: the bodies of the highest mean in the body log evaluated
+again from scratch; its best is the run's best body) and `report.report_stage`. Each stage
+offers the programs it will call, which compile ahead (`compile_ahead`).
 """
 
 from __future__ import annotations
@@ -28,10 +24,11 @@ import numpy as np
 
 from evojax_morph import bodylog, checkpoints, controllers, video
 from evojax_morph.confirm import Confirmed, confirm, lower_confirm
+from evojax_morph.engines import registered
 from evojax_morph.fitnesses import get_fitness
 from evojax_morph.morphology import Morphology
 from evojax_morph.pipeline import Greedy, Pipeline, RunConfig, build, make_greedy_rollout
-from evojax_morph.report import confirmed_entry, timing, write_results
+from evojax_morph.report import confirmed_entry, report_stage
 from evojax_morph.sharding import barrier, batch_mesh, replicated, to_host
 from evojax_morph.warmup import Warmup
 
@@ -52,12 +49,11 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     """Runs `cfg` in the directory `out` (checked writable), from its last checkpoint if
     `resume`, drawing best.gif at the end if `gif`; every process calls it, process 0 writes
     the files and prints. The programs called after m0's compile ahead (`compile_ahead`)."""
-    # Lowered on the warmup thread while m0 compiles and runs, and compiled there unless Warp
-    # runs on a GPU, where a compile's autotuning breaks a Warp call's graph capture (`warmup`).
-    # With Warp on several GPUs not even lowered ahead (runs there hung; `warmup`).
-    warp_gpu = cfg.physics == "warp" and jax.default_backend() == "gpu"
-    ahead = Warmup(on=False if warp_gpu and jax.device_count() > 1 else None,
-                   compiles=not warp_gpu)
+    # Lowered on the warmup thread while m0 compiles and runs, and compiled there unless the
+    # engine captures graphs on a GPU (MuJoCo Warp), which a compile's autotuning breaks
+    # (`warmup`); on several GPUs then not even lowered ahead (runs there hung; `warmup`).
+    graphs = registered(cfg.physics).graph_capture and jax.default_backend() == "gpu"
+    ahead = Warmup(on=False if graphs and jax.device_count() > 1 else None, compiles=not graphs)
     try:
         _execute(cfg, out, resume, gif, ahead)
     finally:
@@ -82,7 +78,7 @@ class Run(NamedTuple):
 
     cfg: RunConfig
     out: Path
-    gif: bool
+    gif: bool  # best.gif: asked for, and the fitness trains controllers (decided once)
     p: Pipeline
     lead: bool  # the process that writes files and prints
     log: Callable  # print on the lead process, else nothing
@@ -94,13 +90,15 @@ class Run(NamedTuple):
 
 
 class Evolved(NamedTuple):
-    """What the evolve stage hands down: the agent state after `step` steps and the record."""
+    """What the evolve stage hands down: the agent state after `step` steps, its record, and
+    the trained agent's greedy rollout."""
 
     state: object
     step: int
     rows: list[dict]  # metrics.csv's
     chunk_seconds: list[tuple[int, float]]  # (steps, wall clock) of each chunk; the first compiles
     dispatch: float | None  # seconds until the first chunk call returns (`timing`)
+    greedy: Greedy | None  # None for the baselines: no policy to roll out
 
 
 class Best(NamedTuple):
@@ -108,7 +106,6 @@ class Best(NamedTuple):
 
     morph: Morphology
     fitness: float
-    greedy: Greedy | None
     record: dict  # confirmed.json's
     top: Confirmed | None  # the confirmed best, when evaluated now
     saved: list[str]  # the controllers saved
@@ -117,26 +114,28 @@ class Best(NamedTuple):
 def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) -> None:
     """The run as stages: build, warm up (m0 or a checkpoint), evolve, confirm, report."""
     clock = Clock()
-    run, step, state = _build(cfg, out, resume, gif, ahead)
+    run, step, state, abstract = _build(cfg, out, resume, gif)
+    compile_ahead(ahead, _evolve_jobs(run, abstract, step or 0) + _confirm_jobs(run)
+                  + _report_jobs(run))  # queued before m0's evaluation, begun after its lowering
     step, state, rows = _warm_up(run, step, state, ahead)
     clock.phase("build_and_m0")
-    evolved = _evolve(run, step, state, rows, ahead)
-    clock.phase("steps")
+    evolved = _evolve(run, step, state, rows, ahead, clock)
     best = _confirm(run, evolved, ahead, clock)
     if run.lead:
-        _report(run, evolved, best, clock)
+        report_stage(run, evolved, best, clock)
 
 
-def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup):
-    """The pipeline, the newest checkpoint that reads if `resume`, and the programs to compile
-    ahead; returns (Run, step, state), step and state None where no checkpoint was restored."""
+def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
+    """The pipeline and the newest checkpoint that reads if `resume`; returns (Run, step, state,
+    abstract), step and state None where no checkpoint was restored, abstract the agent state's
+    shapes and placement (what the later programs are compiled for)."""
     lead = jax.process_index() == 0
     write_config = lambda: (out / "config.json").write_text(  # noqa: E731
-        json.dumps(dataclasses.asdict(cfg), indent=1)
-    )
+        json.dumps(dataclasses.asdict(cfg), indent=1))
     if lead and not resume:
         write_config()
     p = build(cfg)
+    gif = gif and controllers.has_controllers(p.fitness)  # asked for, and a controller to show
     log = print if lead else (lambda *a, **k: None)
     log(f"evojax_morph: {cfg.agent} on {cfg.space} with {cfg.fitness} fitness, {cfg.num_envs} "
         f"parallel evolutions x {cfg.steps} steps, horizon {p.env.horizon}, on "
@@ -148,8 +147,7 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup):
     # The agent state's shape and placement: where a checkpoint is restored to, what the later
     # programs are compiled for.
     on_mesh = lambda x: jax.ShapeDtypeStruct(  # noqa: E731
-        x.shape, x.dtype, sharding=replicated(batch_mesh()), weak_type=x.weak_type
-    )
+        x.shape, x.dtype, sharding=replicated(batch_mesh()), weak_type=x.weak_type)
     abstract = jax.tree.map(on_mesh, jax.eval_shape(p.agent.init, key_init))
     step = state = None
     if resume:
@@ -161,9 +159,8 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup):
     _, manager = checkpoints.checkpoint_manager(out)
     bodies = bodylog.BodyLog(out / "bodies.sqlite", p.space) if lead else None
     greedy_rollout = None if p.agent.scores is None else make_greedy_rollout(p)
-    compile_ahead(ahead, p, cfg, step or 0, abstract, greedy_rollout, key_greedy, gif)
     run = Run(cfg, out, gif, p, lead, log, manager, bodies, greedy_rollout, key_init, key_greedy)
-    return run, step, state
+    return run, step, state, abstract
 
 
 def _warm_up(run: Run, step, state, ahead: Warmup):
@@ -190,9 +187,10 @@ def _warm_up(run: Run, step, state, ahead: Warmup):
     return 0, state, []
 
 
-def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup) -> Evolved:
+def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: Clock) -> Evolved:
     """The steps from `step` to cfg.steps, chunk by chunk: metrics.csv, the body log and
-    TensorBoard after each chunk, a checkpoint every cfg.checkpoint_every chunks and at the end."""
+    TensorBoard after each chunk, a checkpoint every cfg.checkpoint_every chunks and at the end;
+    then the trained agent's greedy rollout (an agent with a policy)."""
     from tensorboardX import SummaryWriter
     from tqdm import tqdm
 
@@ -229,7 +227,14 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup) -> Evol
     if lead:
         writer.close()
         run.bodies.close()
-    return Evolved(state, step, rows, chunk_seconds, dispatch)
+    clock.phase("steps")
+    greedy = None
+    if run.greedy_rollout is not None:
+        ahead.wait("greedy")
+        greedy = run.greedy_rollout(state.learner, state.first, run.key_greedy)
+    barrier("body log written")  # every process reads it in the confirm stage
+    clock.phase("greedy_rollout")
+    return Evolved(state, step, rows, chunk_seconds, dispatch, greedy)
 
 
 def _record_chunk(run: Run, step: int, n: int, metrics: dict, writer) -> list[dict]:
@@ -260,18 +265,12 @@ def _record_chunk(run: Run, step: int, n: int, metrics: dict, writer) -> list[di
 
 
 def _confirm(run: Run, evolved: Evolved, ahead: Warmup, clock: Clock) -> Best:
-    """The greedy rollout (an agent with a policy), the confirm stage and the controllers of
-    the best body and of the greedy trajectory's, saved; every process calls it."""
+    """The confirm stage, the best body's and the greedy trajectory's controllers saved, and
+    confirmed.json (if confirmed now, lead process); every process calls it."""
     p, cfg, state = run.p, run.cfg, evolved.state
     best, best_fitness, best_params = to_host(
         (state.best_morph, state.best_fitness, state.best_params)
     )
-    greedy = None
-    if run.greedy_rollout is not None:
-        ahead.wait("greedy")
-        greedy = run.greedy_rollout(state.learner, state.first, run.key_greedy)
-    barrier("body log written")  # every process reads it in the confirm stage
-    clock.phase("greedy_rollout")
     ahead.wait("confirm")
     record, top = confirm_stage(run.out, p, cfg, evolved.step, run.log)
     clock.phase("confirm")
@@ -279,52 +278,58 @@ def _confirm(run: Run, evolved: Evolved, ahead: Warmup, clock: Clock) -> Best:
     best, best_fitness, best_params, best_cfg = reported_best(
         run.out, p, record, top, (best, float(best_fitness), best_params)
     )
-    saved = save_controllers(run.out, p, cfg.seed, best, best_fitness, best_params, greedy,
-                             best_cfg)
+    saved = save_controllers(run.out, p, cfg.seed, best, best_fitness, best_params,
+                             evolved.greedy, best_cfg)
     clock.phase("controllers")
-    return Best(best, best_fitness, greedy, record, top, saved)
+    if top is not None and run.lead:  # written last: the stage is done, a --resume keeps it
+        record["best_morphology"] = best.to_dict()
+        (run.out / "confirmed.json").write_text(json.dumps(checkpoints.seal(record), indent=1))
+    return Best(best, best_fitness, record, top, saved)
 
 
-def _report(run: Run, evolved: Evolved, best: Best, clock: Clock) -> None:
-    """confirmed.json (if confirmed now), the results (`write_results`) and timing.json; the
-    lead process only."""
-    out, p = run.out, run.p
-    if best.top is not None:  # written last: the stage is done, a --resume keeps it
-        best.record["best_morphology"] = best.morph.to_dict()
-        (out / "confirmed.json").write_text(json.dumps(checkpoints.seal(best.record), indent=1))
-    task = p.fitness.task
-    write_results(out, p.space, evolved.rows, best.morph, best.fitness, best.greedy, evolved.step,
-                  best.saved, run.gif, best.record, clock.phase,
-                  task.episode_length * task.frame_skip * p.space.template.opt.timestep)
-    times = timing(time.perf_counter() - clock.started, evolved.chunk_seconds) | {
-        "phases": clock.phases, "first_chunk_dispatch": evolved.dispatch}
-    (out / "timing.json").write_text(json.dumps(times, indent=1))
-    if times["step_seconds"]:
-        print(f"time: {times['seconds']:.0f} s, {times['step_seconds']:.3g} s a step, "
-              f"{times['outside_steps_seconds']:.0f} s outside the steps (timing.json; "
-              "imports not counted)")
+class Job(NamedTuple):
+    """A job a stage offers to do ahead (`warmup`): `fn` lowers a program of its, compiled on
+    the compiling thread in the order given; or, `own_thread`, a probe on a thread of its own."""
+
+    name: str
+    fn: Callable
+    own_thread: bool = False
 
 
-def compile_ahead(ahead: Warmup, p: Pipeline, cfg: RunConfig, start: int, state, greedy_rollout,
-                  key_greedy, gif: bool) -> None:
-    """The programs a run calls after m0's, given to `ahead` to lower and compile in the order
-    they are called: the chunks of the sizes the steps from `start` take,
-    `greedy_rollout`'s, the confirm stage's and best.gif's replay (and its GL probes, on a
-    thread of their own); `state`: the agent state's shapes and placement."""
+def compile_ahead(ahead: Warmup, jobs: list[Job]) -> None:
+    """Gives `ahead` the jobs the stages offer: it only collects them."""
+    for job in jobs:
+        (ahead.run if job.own_thread else ahead.compile)(job.name, job.fn)
+
+
+def _evolve_jobs(run: Run, state, start: int) -> list[Job]:
+    """The chunks of the sizes the steps from `start` take, then the greedy rollout."""
+    cfg, p = run.cfg, run.p
     sizes = [min(cfg.chunk, cfg.steps - s) for s in range(start, cfg.steps, cfg.chunk)]
-    for n in dict.fromkeys(sizes):
-        ahead.compile(f"chunk {n}", lambda n=n: p.agent.chunk.lower(state, n))
-    if greedy_rollout is not None:
-        ahead.compile("greedy", lambda: greedy_rollout.lower(state.learner, state.first,
-                                                             key_greedy))
-    confirms = cfg.confirm > 0 and not get_fitness(cfg.fitness).deterministic
-    if confirms:
-        ahead.compile("confirm", lambda: lower_confirm(p.space, cfg.confirm, p.fitness,
-                                                       cfg.confirm_controllers))
-    if gif and controllers.has_controllers(p.fitness) and jax.process_index() == 0:
-        shown = p.fitness.with_controllers(cfg.confirm_controllers) if confirms else p.fitness
-        ahead.compile("replay", lambda: video.lower_replay(p.space, shown))
-        ahead.run("gl", video.choose_gl)
+    jobs = [Job(f"chunk {n}", lambda n=n: p.agent.chunk.lower(state, n))
+            for n in dict.fromkeys(sizes)]
+    if run.greedy_rollout is not None:
+        jobs.append(Job("greedy", lambda: run.greedy_rollout.lower(state.learner, state.first,
+                                                                   run.key_greedy)))
+    return jobs
+
+
+def _confirm_jobs(run: Run) -> list[Job]:
+    """The confirm stage's one fitness call, where it makes one."""
+    cfg, p = run.cfg, run.p
+    return [] if confirm_skipped(cfg) else [Job("confirm", lambda: lower_confirm(
+        p.space, cfg.confirm, p.fitness, cfg.confirm_controllers))]
+
+
+def _report_jobs(run: Run) -> list[Job]:
+    """best.gif's replay (of the controllers `reported_best` leaves) and its GL probes."""
+    cfg, p = run.cfg, run.p
+    if not (run.gif and run.lead):
+        return []
+    shown = p.fitness if confirm_skipped(cfg) else p.fitness.with_controllers(
+        cfg.confirm_controllers)
+    return [Job("replay", lambda: video.lower_replay(p.space, shown)),
+            Job("gl", video.choose_gl, own_thread=True)]
 
 
 def reported_best(out: Path, p: Pipeline, record: dict, top: Confirmed | None, draw: tuple):
@@ -351,6 +356,17 @@ def reported_best(out: Path, p: Pipeline, record: dict, top: Confirmed | None, d
     return (*draw, p.fitness)
 
 
+def confirm_skipped(cfg: RunConfig) -> str | None:
+    """Why the confirm stage evaluates nothing (confirmed.json's note), None where it does: the
+    one place this is decided (`_confirm_jobs`, `confirm_stage`)."""
+    if cfg.confirm == 0:
+        return "not run (--confirm 0): the best body is the highest single draw, a noisy maximum"
+    if get_fitness(cfg.fitness).deterministic:
+        return (f"not run: the {cfg.fitness} fitness is deterministic, so an evaluation again "
+                "gives the same values; the best body is the highest single draw")
+    return None
+
+
 def confirm_stage(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print):
     """The run's confirm stage; every process calls it, after the body log is written.
 
@@ -358,10 +374,9 @@ def confirm_stage(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print):
     best_bodies`: ties to the body evaluated more often, then to the one seen first) are each
     evaluated `cfg.confirm_controllers` times from scratch, in one fitness call (`confirm`):
     fresh controllers, no inheritance, keys from `fold_in(PRNGKey(seed), CONFIRM_SALT)`, which
-    no other part of the run uses. Skipped, with a note saying why, for a deterministic fitness
-    (evaluating again gives the same values) and with --confirm 0; not done again when the run's
-    confirmed.json says it was done at this step with these settings (a --resume of a finished
-    run).
+    no other part of the run uses. Skipped, with a note saying why (`confirm_skipped`); not done
+    again when confirmed.json says it was done at this step with these settings (a --resume of
+    a finished run).
 
     Returns:
       (record, top): record is what confirmed.json keeps (env_steps, bodies, controllers,
@@ -376,15 +391,10 @@ def confirm_stage(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print):
         if all(before.get(k) == record[k] for k in ("env_steps", "bodies", "controllers")):
             log("confirm: done when the run finished, kept (confirmed.json)")
             return before, None
-    if n == 0:
-        record["confirm_note"] = ("not run (--confirm 0): the best body is the highest single "
-                                  "draw, a noisy maximum")
-        return record, None
-    if get_fitness(cfg.fitness).deterministic:
-        record["confirm_note"] = (f"not run: the {cfg.fitness} fitness is deterministic, so an "
-                                  "evaluation again gives the same values; the best body is the "
-                                  "highest single draw")
-        log(f"confirm: {record['confirm_note']}")
+    record["confirm_note"] = confirm_skipped(cfg)
+    if record["confirm_note"]:
+        if n:  # --confirm 0 said so itself
+            log(f"confirm: {record['confirm_note']}")
         return record, None
     path = out / "bodies.sqlite"
     ranked = bodylog.best_bodies(path, n)

@@ -46,6 +46,16 @@ class Engine(NamedTuple):
     where(done, on_true, on_false) -> data: world by world, `on_true` where done (n,) is set.
     foreign: its step is a foreign (FFI) call, which XLA's partitioner cannot split across
       devices: a batch of bodies splits by `jax.shard_map` instead (`sharding.shard_batch`).
+    graph_capture: on a GPU its step replays CUDA graphs captured from XLA's stream, which a
+      compile on another thread breaks: a run compiles nothing ahead beside it, and on several
+      GPUs lowers nothing ahead either (runs there hung; `warmup`, `driver.execute`).
+    unreproducible: why a run stepping on it on a GPU is not reproducible from its seed whatever
+      XLA does ("" where it is): the run then leaves XLA's deterministic ops off, which would
+      only cost time (`run.start_deterministic`).
+    gpu_controllers: the controllers per body a run on a GPU trains by default
+      (`Space.gpu_controllers`), spending the engine's speed on a fitness with less noise
+      (docs/benchmarks.md, H100, 256 bodies of 50,000 PPO steps): 4 on the JAX engine (cv 0.23,
+      noise-to-signal 0.60, 66 s of fitness a step), 8 on MuJoCo Warp (cv 0.15, 0.43; 27 s).
     """
 
     name: str
@@ -56,6 +66,9 @@ class Engine(NamedTuple):
     forward: Callable[[Any, mjx.Data], mjx.Data]
     where: Callable[[jax.Array, mjx.Data, mjx.Data], mjx.Data]
     foreign: bool = False
+    graph_capture: bool = False
+    unreproducible: str = ""
+    gpu_controllers: int = 4
 
 
 def _per_body(fn):
@@ -109,6 +122,9 @@ WARP = Engine(
     forward=_flat(mjx.forward),
     where=lambda done, on_true, on_false: _warp().where_worlds(done, on_true, on_false),
     foreign=True,
+    graph_capture=True,
+    unreproducible="on a GPU MuJoCo Warp orders contacts by thread timing",
+    gpu_controllers=8,
 )
 
 _REGISTRY: dict[str, Engine] = {e.name: e for e in (JAX, WARP)}
@@ -121,6 +137,28 @@ def foreign(name: str) -> bool:
     return name in _REGISTRY and _REGISTRY[name].foreign
 
 
+def registered(name: str) -> Engine:
+    """The engine registered as `name`, not checked that it runs here: its traits, read before
+    a JAX backend starts; a ValueError for an unknown name."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown physics {name!r}; choose one of {', '.join(list_engines())}")
+    return _REGISTRY[name]
+
+
+def warp_imports() -> bool:
+    """MuJoCo Warp's `importable()` (False where the optional extra is not installed)."""
+    return _warp().importable()[0]  # imports without the extra; it loads Warp on first use
+
+
+def may_take(name: str) -> list[Engine]:
+    """The engines `name` may resolve to (`resolve`), found without starting a JAX backend:
+    "auto" gives the JAX engine, and Warp where it imports (auto takes it on a GPU; without
+    one, XLA's GPU flags change nothing); an unknown name none (its user says so)."""
+    if name == AUTO:
+        return [JAX, WARP] if warp_imports() else [JAX]
+    return [_REGISTRY[name]] if name in _REGISTRY else []
+
+
 def list_engines() -> list[str]:
     """Names accepted by `get_engine` and `FitnessConfig.physics` ("auto" is resolved first)."""
     return list(_REGISTRY)
@@ -129,9 +167,7 @@ def list_engines() -> list[str]:
 def get_engine(name: str) -> Engine:
     """The engine `name`; a ValueError for an unknown name, a RuntimeError with the reason for
     one that cannot run here."""
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown physics {name!r}; choose one of {', '.join(list_engines())}")
-    engine = _REGISTRY[name]
+    engine = registered(name)
     ok, reason = engine.available()
     if not ok:
         raise RuntimeError(f"the {name} physics cannot run here: {reason}")
@@ -156,5 +192,5 @@ def repeat_worlds(tree, worlds_per_body: int):
     return jax.tree.map(lambda x: jnp.repeat(x, worlds_per_body, axis=0), tree)
 
 
-__all__ = ["AUTO", "Engine", "JAX", "WARP", "get_engine", "list_engines", "repeat_worlds",
-           "resolve"]
+__all__ = ["AUTO", "Engine", "JAX", "WARP", "get_engine", "list_engines", "may_take",
+           "registered", "repeat_worlds", "resolve"]

@@ -37,18 +37,18 @@ class TaskConfig:
     max_speed: float = 100.0  # a generalised velocity beyond this marks a diverged simulation
 
 
-# The registered tasks: a name and its settings, as mujoco_playground registers environments
-# with their default configs. docs/fidelity.md says how each reads the source.
-TASKS = {
+# The registered tasks by their names, as mujoco_playground registers environments with their
+# default configs. docs/fidelity.md says how each reads the source.
+TASKS = {t.name: t for t in (
     # The source's reading (NGE's fitness): the return pays the distance covered before the
     # episode ends, nothing for staying up, so falling forward is the easiest score.
-    "distance": TaskConfig(),
+    TaskConfig(name="distance"),
     # Walking: Gymnasium's Walker2d and Hopper terms (forward velocity, a reward per healthy
     # step, squared controls; the episode ends at a fall), the healthy reward scaled to these
     # bodies' speeds (docs/fidelity.md): standing still for 5 s pays 125, walking 2 m 225, a
     # lunge of 1 m that falls after 1 s 75.
-    "walk": TaskConfig(name="walk", healthy_reward=0.5),
-}
+    TaskConfig(name="walk", healthy_reward=0.5),
+)}
 
 
 # What "walks" means everywhere (the run's printout, docs/results.md): a body confirmed at a
@@ -75,7 +75,7 @@ def make_task(name: str, **overrides) -> TaskConfig:
       ValueError: `name` is not a registered task, or an override is not a setting.
     """
     if name not in TASKS:
-        raise ValueError(f"unknown task {name!r}; choose one of {', '.join(list_tasks())}")
+        raise ValueError(f"unknown task {name!r}; known tasks: {', '.join(list_tasks())}")
     fields = {f.name for f in dataclasses.fields(TaskConfig)} - {"name"}
     unknown = sorted(set(overrides) - fields)
     if unknown:

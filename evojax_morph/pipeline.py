@@ -17,7 +17,7 @@ from evojax_morph import agents
 from evojax_morph.agents import Agent, RunOptions
 from evojax_morph.evolution import EvolutionEnv, masked_argmax
 from evojax_morph.fitness import make_fitness_fn
-from evojax_morph.fitnesses import FitnessConfig, get_fitness, standard_ppo
+from evojax_morph.fitnesses import FitnessConfig, Inputs, get_fitness, standard_ppo
 from evojax_morph.locomotion import make_task
 from evojax_morph.sharding import batch_mesh, to_host
 from evojax_morph.spaces import Space, make_space
@@ -29,7 +29,7 @@ class RunConfig:
 
     space: str = "bad_walker"
     fitness: str = "ppo"  # a registered fitness kind: ppo | predefined | tame | table
-    task: str = ""  # the locomotion task (`list_tasks`): walk | distance; "": `default_task`
+    task: str = ""  # the locomotion task (`list_tasks`): walk | distance; "": the fitness's default
     classifier: str = ""  # tame: directory of the trained classifier
     table: str = ""  # table: the landscape table (.npz); "": the space's packaged one
     agent: str = "ddqn"  # a registered agent (`agents.list_agents`)
@@ -50,16 +50,6 @@ class RunConfig:
     checkpoint_every: int = 1  # chunks between checkpoints
     confirm: int = 4  # bodies of the highest mean evaluated again at the end; 0: none
     confirm_controllers: int = 4  # fresh evaluations (controllers) per confirmed body
-
-
-def default_task(cfg: RunConfig, space: Space) -> str:
-    """The task of a run that names none: the table's own for the table fitness (its results
-    were trained under it), else "walk"."""
-    if cfg.fitness == "table":
-        from evojax_morph.fitnesses import table
-
-        return table.task_of(table.table_path(space, cfg))
-    return "walk"
 
 
 def agent_config(cfg: RunConfig, env: EvolutionEnv) -> Any:
@@ -95,7 +85,8 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     (`agents.config_for_run`).
     """
     space = make_space(cfg.space)
-    task = cfg.task or default_task(cfg, space)
+    task = cfg.task or get_fitness(cfg.fitness).default_task(
+        Inputs(cfg.space, classifier=cfg.classifier, table=cfg.table))
     fit_cfg = FitnessConfig(kind=cfg.fitness, task=make_task(task),
                             ppo=standard_ppo(cfg.train_steps, cfg.controllers),
                             classifier=cfg.classifier, physics=cfg.physics, table=cfg.table,

@@ -4,14 +4,20 @@ bodies, TAME's training."""
 from __future__ import annotations
 
 import jax
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
 from evojax_morph.morphology import Morphology
 from evojax_morph.spaces import Space
+
+
+def _figure(**kwargs) -> Figure:
+    """A figure drawn by Agg, outside pyplot: no window, and matplotlib's backend left as the
+    importer set it."""
+    fig = Figure(**kwargs)
+    FigureCanvasAgg(fig)
+    return fig
 
 
 def median_filter(x: np.ndarray, width: int) -> np.ndarray:
@@ -21,7 +27,8 @@ def median_filter(x: np.ndarray, width: int) -> np.ndarray:
 
 def plot_curve(path, steps, median, q25, q75, width: int = 9, label: str = "reward") -> None:
     """The source's style: median-filtered per-step median with a .25-.75 quantile band."""
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig = _figure(figsize=(6, 3.5))
+    ax = fig.subplots()
     ax.fill_between(
         steps,
         median_filter(q25, width),
@@ -35,7 +42,6 @@ def plot_curve(path, steps, median, q25, q75, width: int = 9, label: str = "rewa
     ax.legend(loc="best")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def draw_morphology(ax, space: Space, m: Morphology) -> None:
@@ -77,7 +83,8 @@ def plot_trajectory(
 ) -> None:
     """Every morphology of a rollout with its fitness, left to right (the source's Figure 5)."""
     n = len(morphs)
-    fig, axes = plt.subplots(1, n, figsize=(2.6 * n, 2.4), squeeze=False)
+    fig = _figure(figsize=(2.6 * n, 2.4))
+    axes = fig.subplots(1, n, squeeze=False)
     fig.tight_layout()  # settle the axes' sizes before drawing in data units
     for i, (ax, m) in enumerate(zip(axes[0], morphs)):
         draw_morphology(ax, space, m)
@@ -87,14 +94,14 @@ def plot_trajectory(
         ax.set_title(title, fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def plot_confirmed(path, confirmed: list[dict]) -> None:
     """The confirmed bodies, best at the top: each one's mean over its fresh evaluations with its
     95% interval, beside its mean in the run's body log (`summary.json`'s "confirmed")."""
     n = len(confirmed)
-    fig, ax = plt.subplots(figsize=(7, 0.9 + 0.45 * n))
+    fig = _figure(figsize=(7, 0.9 + 0.45 * n))
+    ax = fig.subplots()
     y = np.arange(n)[::-1]
     mean = np.array([c["mean"] for c in confirmed])
     lo, hi = (np.array([c["ci95"][i] for c in confirmed]) for i in (0, 1))
@@ -106,14 +113,14 @@ def plot_confirmed(path, confirmed: list[dict]) -> None:
     ax.legend(loc="best", fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def plot_tame_history(path, history: list[dict]) -> None:
     """The TAME classifier per generation: log-likelihood per motor and accuracy, on the bodies
     it trains on and on held-out bodies, against chance."""
     gens = [h["generation"] for h in history]
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    fig = _figure(figsize=(9, 3.4))
+    axes = fig.subplots(1, 2)
     for ax, metric in zip(axes, ("loglik", "accuracy")):
         ax.plot(
             gens, [h[f"train_{metric}"] for h in history], label="training bodies (their rollouts)"
@@ -125,4 +132,3 @@ def plot_tame_history(path, history: list[dict]) -> None:
     axes[0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)

@@ -4,7 +4,7 @@ the entries of confirmed.json and timing.json it is built from (`driver`)."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
+import time
 
 import numpy as np
 
@@ -71,38 +71,52 @@ def walks(entry: dict, seconds: float) -> str:
             "its evaluations)")
 
 
-def write_results(
-    out: Path, space, rows: list[dict], best, best_fitness: float, greedy: Greedy | None,
-    steps: int, saved: list[str], gif: bool, record: dict, phase=lambda name: None,
-    episode_seconds: float = 5.0,
-) -> None:
+def report_stage(run, evolved, best, clock) -> None:
+    """The report stage, on the lead process, from the earlier stages' results: `run`
+    (`driver.Run`), `evolved` (`driver.Evolved`), `best` (`driver.Best`) and their `clock`
+    (`driver.Clock`): the results (`write_results`), then timing.json."""
+    write_results(run, evolved, best, clock.phase)
+    times = timing(time.perf_counter() - clock.started, evolved.chunk_seconds) | {
+        "phases": clock.phases, "first_chunk_dispatch": evolved.dispatch}
+    (run.out / "timing.json").write_text(json.dumps(times, indent=1))
+    if times["step_seconds"]:
+        print(f"time: {times['seconds']:.0f} s, {times['step_seconds']:.3g} s a step, "
+              f"{times['outside_steps_seconds']:.0f} s outside the steps (timing.json; "
+              "imports not counted)")
+
+
+def write_results(run, evolved, best, phase=lambda name: None) -> None:
     """summary.json and a printed digest of it, with the best bodies of the body log and the
-    confirmed ones (with their gait: metres in an episode of `episode_seconds`, and upright);
-    curve.png, best.xml, trajectory.png (if `greedy`), confirmed.png (if the confirm stage's
-    `record` confirmed bodies) and best.gif (if controllers were `saved` and `gif`).
-    `phase("results")` is called before best.gif is drawn, `phase("best_gif")` after."""
+    confirmed ones (with their gait: metres in an episode, and upright); curve.png, best.xml,
+    trajectory.png (if the evolve stage rolled out a greedy trajectory), confirmed.png (if the
+    confirm stage's record confirmed bodies) and best.gif (if `run.gif`). `phase("results")`
+    is called before best.gif is drawn, `phase("best_gif")` after."""
+    out, space, greedy, saved = run.out, run.p.space, evolved.greedy, best.saved
+    task = run.p.fitness.task
+    episode_seconds = task.episode_length * task.frame_skip * space.template.opt.timestep
     log = out / "bodies.sqlite"
     summary = {
-        "best_fitness": best_fitness,  # the confirmed mean; else (not confirmed) the best draw
-        "best_morphology": best.to_dict(),
-        "best_body": space.canonical(best),
+        "best_fitness": best.fitness,  # the confirmed mean; else (not confirmed) the best draw
+        "best_morphology": best.morph.to_dict(),
+        "best_body": space.canonical(best.morph),
         "best_single_draw": bodylog.best_draw(log),
-        "confirmed": record["confirmed"],
-        "confirm_note": record["confirm_note"],
-        "env_steps": steps,
+        "confirmed": best.record["confirmed"],
+        "confirm_note": best.record["confirm_note"],
+        "env_steps": evolved.step,
         "greedy_trajectory": None if greedy is None else [
             {"action": a, "fitness": f, "morphology": m.to_dict()}
             for a, f, m in zip(["m0"] + greedy.actions, greedy.fitness, greedy.morphs)],
         "best_bodies": bodylog.best_bodies(log, 10),
         "controllers": saved,
     }
-    print_summary(summary, space, best, greedy, episode_seconds)
+    print_summary(summary, space, best.morph, greedy, episode_seconds)
     written = "curve.png best.xml summary.json metrics.csv bodies.sqlite tb/ checkpoints/"
     written += " controllers/" if saved else ""
+    rows = evolved.rows
     col = lambda name: np.array([r[name] for r in rows], float)  # noqa: E731  (resumed: strings)
     plots.plot_curve(out / "curve.png", col("step"), col("reward_median"), col("reward_q25"),
                      col("reward_q75"))
-    (out / "best.xml").write_text(space.to_mjcf(best))
+    (out / "best.xml").write_text(space.to_mjcf(best.morph))
     if summary["confirmed"]:
         plots.plot_confirmed(out / "confirmed.png", summary["confirmed"])
         written = "confirmed.json confirmed.png " + written
@@ -111,7 +125,7 @@ def write_results(
                               greedy.actions)
         written = "trajectory.png " + written
     phase("results")  # before best.gif, drawn last: a failing OpenGL leaves the rest written
-    if saved and gif:
+    if run.gif:
         shown = video.render(out, "best", mp4=False)
         for note in shown.notes:
             print(f"best.gif: {note}")

@@ -25,61 +25,19 @@ from pathlib import Path
 import jax
 
 from evojax_morph import agents, checkpoints, driver
-from evojax_morph.determinism import deterministic_gpu, persistent_cache
-from evojax_morph.engines import AUTO, list_engines, resolve
-from evojax_morph.fitnesses import list_fitnesses
-from evojax_morph.fitnesses.table import default_path as default_table
-from evojax_morph.fitnesses.table import task_of
-from evojax_morph.locomotion import list_tasks
+from evojax_morph.determinism import deterministic_gpu, full_precision, persistent_cache
+from evojax_morph.engines import AUTO, list_engines, may_take, registered
+from evojax_morph.fitnesses import Inputs, get_fitness, list_fitnesses, resolve_physics
+from evojax_morph.locomotion import list_tasks, make_task
 from evojax_morph.pipeline import RunConfig
 from evojax_morph.sharding import barrier, init_distributed
-from evojax_morph.spaces import list_spaces
+from evojax_morph.spaces import Space, get_space, list_spaces
 
 
-def gpu_defaults(space: str = "bad_walker") -> dict:
-    """On a GPU the same command evaluates a larger batch with a longer PPO budget, and several
-    controllers per body (`gpu_controllers`); the Constructor's come from its budget benchmark
-    (`experiments.walking_budget` at git 119441b, docs/results.md "Bodies that walk")."""
-    if space == "constructor":
-        return CONSTRUCTOR_GPU
-    return {
-        "num_envs": 256,
-        "train_steps": 50_000,
-        "steps": 100,
-        "explore_steps": 50,
-        "learning_starts": 256,
-        "chunk": 10,
-        "checkpoint_every": 2,
-        "confirm": 8,
-        "confirm_controllers": 32,
-    }
-
-
-# The Constructor on the walking task (docs/results.md, "Bodies that walk"): at 100,000 PPO
-# steps 2.1% of random 8-mutation bodies' evaluations walk 2 m upright (0.8% at 50,000, none at
-# 10,000), at twice 50,000's cost; 128 evolutions x 1 controller keep a step at ~6 s on an H100
-# (200,000 walks more, 3.8%, but doubles the greedy rollout's 8 one-body calls too).
-CONSTRUCTOR_GPU = {
-    "num_envs": 128,
-    "train_steps": 100_000,
-    "steps": 60,
-    "explore_steps": 30,
-    "learning_starts": 128,
-    "chunk": 5,
-    "checkpoint_every": 1,
-    "confirm": 8,
-    "confirm_controllers": 32,
-}
-
-
-def gpu_controllers(physics: str, space: str = "bad_walker") -> int:
-    """Controllers per body on a GPU, spending each engine's speed on a fitness with less noise
-    (docs/benchmarks.md, H100, 256 bodies of 50,000 PPO steps): 8 on MuJoCo Warp (cv 0.15,
-    noise-to-signal 0.43, 27 s of fitness a step), 4 on the JAX engine (cv 0.23, 0.60; 66 s).
-    The Constructor's budget goes to PPO steps and evolutions instead: 1."""
-    if space == "constructor":
-        return 1
-    return 8 if physics == "warp" else 4
+def gpu_defaults(space: str) -> dict:
+    """The settings a run of `space` takes on a GPU (`Space.gpu_defaults`); an unknown space
+    gets the common ones (`check` then says it is unknown)."""
+    return (get_space(space) if space in list_spaces() else Space).gpu_defaults()
 
 
 def add_distributed_flags(parser) -> None:
@@ -101,24 +59,26 @@ def add_distributed_flags(parser) -> None:
 
 def start_deterministic(argv) -> None:
     """XLA's deterministic GPU ops, before anything touches a JAX backend, unless --fast-gpu or
-    the PPO fitness may step on MuJoCo Warp (`may_use_warp`)."""
+    the fitness may step on an engine that no XLA flag makes reproducible
+    (`may_step_unreproducibly`)."""
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--fast-gpu", action="store_true")
     pre.add_argument("--physics", default=AUTO)
-    pre.add_argument("--fitness", default="ppo")
+    pre.add_argument("--fitness", default=RunConfig().fitness)
     pre.add_argument("--resume", action="store_true")
     pre.add_argument("--out", default=None)
     known = pre.parse_known_args(argv)[0]
-    if not known.fast_gpu and not may_use_warp(known):
+    if not known.fast_gpu and not may_step_unreproducibly(known):
         deterministic_gpu()
 
 
-def may_use_warp(known: argparse.Namespace) -> bool:
-    """Whether the run's PPO fitness may step on MuJoCo Warp: --physics warp, or auto where Warp
-    imports (auto takes it on a GPU; without one, XLA's GPU flags change nothing). A --resume
-    reads both from the run's config.json. Warp orders contacts by thread timing, so such a run
-    is not reproducible whatever XLA does, and XLA's deterministic ops would only cost time
-    (4.6% of a Bad Walker fitness call at B = 1,024 on an H100, docs/benchmarks.md)."""
+def may_step_unreproducibly(known: argparse.Namespace) -> bool:
+    """Whether the run's fitness may step on an engine that a GPU runs unreproducibly whatever
+    XLA does (`Engine.unreproducible`: MuJoCo Warp orders contacts by thread timing): one the
+    fitness kind steps on (`Fitness.engines`), the --physics it is given where it takes the
+    run's choice, "auto" as `engines.may_take` says. A --resume reads both from the run's
+    config.json. There XLA's deterministic ops would only cost time (4.6% of a Bad Walker
+    fitness call at B = 1,024 on an H100, docs/benchmarks.md)."""
     physics, fitness = known.physics, known.fitness
     if known.resume and known.out:
         try:
@@ -126,16 +86,12 @@ def may_use_warp(known: argparse.Namespace) -> bool:
             physics, fitness = saved["physics"], saved["fitness"]
         except (OSError, ValueError, KeyError, TypeError):
             pass  # the parser says what is wrong with --out
-    if fitness != "ppo":
-        return False
-    return physics == "warp" or (physics == AUTO and warp_imports())
-
-
-def warp_imports() -> bool:
-    """MuJoCo Warp's `importable()` (False where the optional extra is not installed)."""
-    from evojax_morph import warp  # imports without the extra; it loads Warp on first use
-
-    return warp.importable()[0]
+    try:
+        bound = get_fitness(fitness).engines
+    except ValueError:
+        return False  # the parser says the fitness is unknown
+    steps_on = may_take(physics) if bound is None else [registered(e) for e in bound]
+    return any(engine.unreproducible for engine in steps_on)
 
 
 def start_distributed(argv) -> None:
@@ -160,9 +116,10 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
     check(parser, args)
     if not args.resume:
         args.physics = physics(parser, args.physics, args.fitness)
-    if args.controllers is None:
-        args.controllers = gpu_controllers(args.physics, args.space) if gpu else \
-            defaults.controllers
+    if args.controllers is None:  # a --resume takes its run's
+        args.controllers = defaults.controllers
+        if gpu and not args.resume:
+            args.controllers = get_space(args.space).gpu_controllers(registered(args.physics))
     cfg = RunConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(RunConfig)})
     classifier = str(Path(args.classifier).resolve()) if args.classifier else ""
     table = str(Path(args.table).resolve()) if args.table else ""
@@ -358,10 +315,12 @@ def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         parser.error(
             "with several processes pass --out: every process must write the same run directory"
         )
-    if args.space not in list_spaces():
-        parser.error(f"unknown space {args.space!r}; known spaces: {', '.join(list_spaces())}")
-    if args.task is not None and args.task not in list_tasks():
-        parser.error(f"unknown task {args.task!r}; known tasks: {', '.join(list_tasks())}")
+    try:
+        get_space(args.space)
+        if args.task is not None:
+            make_task(args.task)
+    except ValueError as e:  # an unknown name, said by its registry
+        parser.error(str(e))
     for name in POSITIVE:
         value = getattr(args, name)  # None: the default, set by `parse`
         if value is not None and value < (0 if name == "train_steps" else 1):
@@ -375,53 +334,31 @@ def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         parser.error("--confirm must be >= 0 (0: no confirm stage)")
     if args.confirm_controllers < 2:
         parser.error("--confirm-controllers must be at least 2 (an interval needs 2 values)")
-    if args.fitness == "tame" and not args.resume:
-        meta = Path(args.classifier) / "tame.json"
-        if not args.classifier or not meta.exists():
-            parser.error(
-                "--fitness tame needs --classifier DIR, a classifier trained by "
-                f"`python -m evojax_morph.tame --space {args.space} --out DIR`"
-            )
-        if json.loads(meta.read_text())["space"] != args.space:
-            parser.error(
-                f"the classifier in {args.classifier!r} was trained on another space than "
-                f"{args.space}"
-            )
-    if args.fitness == "table" and not args.resume:
-        table = Path(args.table) if args.table else default_table(args.space)
-        if not table.is_file():
-            parser.error(
-                f"--fitness table: no table at {str(table)!r}; build one with `python -m "
-                f"experiments.build_tables --space {args.space} --out PATH` and pass --table PATH"
-            )
-        built = task_of(table)
-        if args.task is not None and args.task != built:
-            parser.error(
-                f"--fitness table: the table {str(table)!r} was built under the task {built!r}, "
-                f"but --task asks for {args.task!r}; pass --task {built} or a table built "
-                f"under {args.task!r} (`python -m experiments.build_tables --task {args.task}`)"
-            )
-        args.task = built
+    kind = get_fitness(args.fitness)
+    inputs = Inputs(args.space, args.task or "", args.classifier, args.table)
+    if not args.resume:  # a --resume takes its run's, checked when it began
+        try:
+            kind.check(inputs)
+        except ValueError as e:
+            parser.error(str(e))
     if args.task is None:
-        args.task = "walk"
+        args.task = kind.default_task(inputs)
 
 
 def physics(parser: argparse.ArgumentParser, name: str, fitness: str) -> str:
-    """The engine `name` resolves to ("auto"), checked: exit 2 with the reason if it cannot
-    run here."""
-    if fitness == "tame" and name not in (AUTO, "jax"):
-        parser.error("--physics: the tame fitness runs on the JAX engine only")
+    """The engine `name` ("auto") resolves to for the fitness kind `fitness`
+    (`resolve_physics`), checked: exit 2 with the reason if it cannot run here."""
     try:
-        name, why = resolve("jax" if fitness == "tame" else name)
+        name, why = resolve_physics(fitness, name)
     except (RuntimeError, ValueError) as e:
         parser.error(f"--physics: {e}")
-    if fitness == "ppo":
+    if get_fitness(fitness).engines is None:  # it steps on the run's choice: say which
         print(f"physics: {name} ({why})", flush=True)
-    if fitness == "ppo" and name == "warp":
-        print("physics: on a GPU MuJoCo Warp orders contacts by thread timing, so this run "
-              "is not reproducible from its seed, and XLA's deterministic ops are left off "
-              "(they would only cost time); --physics jax is reproducible "
-              "(docs/benchmarks.md)", flush=True)
+        if registered(name).unreproducible:
+            print(f"physics: {registered(name).unreproducible}, so this run is not "
+                  "reproducible from its seed, and XLA's deterministic ops are left off (they "
+                  "would only cost time); --physics jax is reproducible (docs/benchmarks.md)",
+                  flush=True)
     return name
 
 
@@ -431,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     start_distributed(args)
     cfg, out, resume, gif = parse(argv)
     barrier("parsed")  # every process checked --out before any of them writes there
-    jax.config.update("jax_default_matmul_precision", "highest")
+    full_precision()  # the agents' networks too, not only the PPO fitness (`full_precision`)
     persistent_cache()  # a second run of the same shapes skips XLA's compiles
     try:
         driver.execute(cfg, out, resume, gif)

@@ -216,13 +216,12 @@ def _mujoco_frames(scene: _Scene, rep: Replay, index, width: int, height: int,
 
 
 def _matplotlib_frames(scene: _Scene, rep: Replay, index, width: int, height: int) -> list:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     dpi = 100
-    fig = plt.figure(figsize=(width / dpi, height / dpi), dpi=dpi)
+    fig = Figure(figsize=(width / dpi, height / dpi), dpi=dpi)  # outside pyplot: no window,
+    FigureCanvasAgg(fig)  # nothing left open, and matplotlib's backend as the importer set it
     ax = fig.add_axes((0, 0, 1, 1))
     view_w = 3.2  # metres across the picture
     points_per_m = width / dpi * 72 / view_w
@@ -241,19 +240,16 @@ def _matplotlib_frames(scene: _Scene, rep: Replay, index, width: int, height: in
     ax.set_aspect("equal")
     ax.axis("off")
     frames = []
-    try:
-        for i in index:
-            ends, _, _ = scene.capsules(rep.qpos[i])
-            for line, (a, b) in zip(lines, ends):
-                line.set_data([a[0], b[0]], [a[2], b[2]])
-            centre = rep.qpos[i, 0]
-            ax.set_xlim(centre - view_w / 2, centre + view_w / 2)
-            ax.set_ylim(-0.15, -0.15 + view_w * height / width)
-            text.set_text(_caption(rep, i))
-            fig.canvas.draw()
-            frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
-    finally:
-        plt.close(fig)
+    for i in index:
+        ends, _, _ = scene.capsules(rep.qpos[i])
+        for line, (a, b) in zip(lines, ends):
+            line.set_data([a[0], b[0]], [a[2], b[2]])
+        centre = rep.qpos[i, 0]
+        ax.set_xlim(centre - view_w / 2, centre + view_w / 2)
+        ax.set_ylim(-0.15, -0.15 + view_w * height / width)
+        text.set_text(_caption(rep, i))
+        fig.canvas.draw()
+        frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
     return frames
 
 

@@ -48,6 +48,7 @@ import evojax_morph as em
 from evojax_morph import engines, ppo
 from evojax_morph import warp as ew
 from evojax_morph.confirm import t_interval
+from evojax_morph.determinism import full_precision
 from evojax_morph.physics import MUJOCO_WARP
 
 STANDARD = em.FitnessConfig(ppo=em.standard_ppo(10_000))
@@ -170,7 +171,7 @@ def main():
     if args.warp_deterministic and not ew.set_deterministic(True):
         parser.error("--warp-deterministic: MJX runs its vendored MuJoCo Warp, which has no "
                      "such option; set EVOJAX_MORPH_MUJOCO_WARP=package (evojax_morph.physics)")
-    jax.config.update("jax_default_matmul_precision", "highest")
+    full_precision()  # as the run command
 
     space = em.make_space(args.space)
     ppo_cfg = em.standard_ppo(args.train_steps, args.controllers)

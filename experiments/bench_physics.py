@@ -36,6 +36,7 @@ import numpy as np
 import evojax_morph as em
 from evojax_morph import classes, physics
 from evojax_morph import warp as ew
+from evojax_morph.determinism import full_precision
 from evojax_morph.physics import mjx
 
 
@@ -272,7 +273,7 @@ def main():
     parser.add_argument("--ideal-bodies", type=int, default=8,
                         help="--classes: the bodies whose unpadded models set the ideal time")
     args = parser.parse_args()
-    jax.config.update("jax_default_matmul_precision", "highest")
+    full_precision()  # as the run command
     kinds = ["jax", "warp"] if args.physics == "both" else [args.physics]
     graph_mode = None
     if "warp" in kinds:

@@ -39,6 +39,7 @@ import scipy.stats
 
 import evojax_morph as em
 from evojax_morph import engines, ppo
+from evojax_morph.determinism import full_precision
 
 # The main job's inner PPO on a GPU today (run.py: 16 envs, 20-step unrolls, 50,000 steps).
 STANDARD = em.standard_ppo(50_000)
@@ -216,7 +217,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if args.deterministic:
         em.deterministic_gpu()
-    jax.config.update("jax_default_matmul_precision", "highest")
+    full_precision()  # as the run command
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     space = em.make_space(args.space)

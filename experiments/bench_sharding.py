@@ -33,6 +33,7 @@ import jax
 
 import evojax_morph as em
 from evojax_morph.agents import dqn
+from evojax_morph.determinism import full_precision
 from evojax_morph.pipeline import RunConfig, build
 from evojax_morph.sharding import batch_mesh
 from experiments.bench_fitness import STANDARD, median_time
@@ -87,7 +88,7 @@ def main():
                         help="bodies for the agreement check instead of timings (0: timings)")
     parser.add_argument("--seeds", type=int, default=16, help="keys per body for --agreement")
     args = parser.parse_args()
-    jax.config.update("jax_default_matmul_precision", "highest")
+    full_precision()  # as the run command
     space = em.make_space(args.space)
     devices = jax.devices()
     if args.agreement:

@@ -44,10 +44,11 @@ import numpy as np
 
 import evojax_morph as em
 from evojax_morph import ppo
+from evojax_morph.determinism import full_precision
 from evojax_morph.fitnesses import table as tables
 from evojax_morph.run import start_deterministic
 
-GPU_TRAIN_STEPS = 50_000  # `run`'s GPU budget per controller (evojax_morph.run.gpu_defaults)
+GPU_TRAIN_STEPS = 50_000  # `run`'s GPU budget per controller (`Space.gpu_defaults`)
 
 
 def engine_flags() -> list[str]:
@@ -230,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--deep-seeds must exceed --seeds")
     args.out = args.out or str(tables.default_path(args.space))
     args.argv = argv
-    jax.config.update("jax_default_matmul_precision", "highest")  # as the run command
+    full_precision()  # as the run command
     build(args)
     return 0
 

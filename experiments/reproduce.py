@@ -42,6 +42,7 @@ import scipy.stats
 import evojax_morph as em
 from evojax_morph import plots
 from evojax_morph.confirm import t_interval
+from evojax_morph.determinism import full_precision
 from evojax_morph.pipeline import NO_OP, agent_config, build, make_greedy_rollout
 from experiments.build_tables import revision
 from experiments.common import Setup, band, episode_returns, plt, run_agent, run_config, save
@@ -403,7 +404,7 @@ def main(argv: list[str] | None = None) -> int:
                               Path(f"docs/figures/reproduce_{args.space}"))
     if args.toy:
         args.train_steps, args.confirm_controllers = 320, 2
-    jax.config.update("jax_default_matmul_precision", "highest")
+    full_precision()  # as the run command
     deadline = time.time() + args.budget
     args.data.mkdir(parents=True, exist_ok=True)
     done = True

@@ -57,7 +57,7 @@ TINY = [
         (["--space", "bad_walker", "--task", "run"],
          "unknown task 'run'; known tasks: distance, walk"),
         (["--space", "bad_walker", "--fitness", "table", "--task", "walk"],
-         "was built under the task 'distance', but --task asks for 'walk'"),
+         "was built under the task 'distance', but the fitness asks for 'walk' (--task)"),
         (["--agent", "nope"], "regularized_evolution"),  # the agents named
         (["--agent", "regularized_evolution", "--population", "3"],
          "the population (3) must hold at least a step's 4 children"),

@@ -38,11 +38,11 @@ def test_switch_before_the_backend_starts_and_refused_after():
 def test_run_asks_for_deterministic_ops_unless_the_ppo_fitness_may_step_on_warp(
     tmp_path, monkeypatch
 ):
-    from evojax_morph import run
+    from evojax_morph import engines, run
 
     asked = []
     monkeypatch.setattr(run, "deterministic_gpu", lambda: asked.append(True))
-    monkeypatch.setattr(run, "warp_imports", lambda: True)
+    monkeypatch.setattr(engines, "warp_imports", lambda: True)
 
     def asks(*argv) -> bool:
         asked.clear()
@@ -55,7 +55,7 @@ def test_run_asks_for_deterministic_ops_unless_the_ppo_fitness_may_step_on_warp(
     assert not asks("--physics", "warp", "--fast-gpu")
     assert asks("--physics", "warp", "--fitness", "table")  # no physics: reproducible
     assert asks("--fitness", "tame")  # tame runs on the JAX engine
-    monkeypatch.setattr(run, "warp_imports", lambda: False)
+    monkeypatch.setattr(engines, "warp_imports", lambda: False)
     assert asks()  # auto without Warp: the JAX engine
     assert not asks("--fast-gpu")
     # a --resume follows the run's saved config, not the defaults
@@ -63,3 +63,40 @@ def test_run_asks_for_deterministic_ops_unless_the_ppo_fitness_may_step_on_warp(
     assert not asks("--resume", "--out", str(tmp_path), "--physics", "jax")
     (tmp_path / "config.json").write_text(json.dumps({"physics": "jax", "fitness": "ppo"}))
     assert asks("--resume", "--out", str(tmp_path))
+
+
+IMPORT = r"""
+import json, os, sys
+import matplotlib
+matplotlib.use(sys.argv[1])  # the importer's choice, which evojax_morph must keep
+b = matplotlib.get_backend(); f = os.environ.get("XLA_FLAGS")
+import evojax_morph
+from evojax_morph import plots, report  # every figure's module, and one figure drawn
+plots.plot_curve(sys.argv[2], [0, 1, 2], [1, 2, 3], [0, 1, 2], [2, 3, 4])
+print(json.dumps([b, matplotlib.get_backend(), f, os.environ.get("XLA_FLAGS")]))
+"""
+
+
+def test_import_leaves_matplotlib_and_xla_flags_as_they_were(tmp_path):
+    """`import evojax_morph` (and a figure drawn) keeps the importer's matplotlib backend, and
+    XLA_FLAGS as they were but for the CPU scheduler flag (`cpu_scheduler_workaround`, said in
+    evojax_morph/__init__.py), appended only where XLA_FLAGS does not set that scheduler."""
+    from evojax_morph.determinism import CPU_FLAG
+
+    def imported(xla_flags: str | None) -> list:
+        env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "MPLBACKEND")}
+        env["JAX_PLATFORMS"] = "cpu"
+        if xla_flags is not None:
+            env["XLA_FLAGS"] = xla_flags
+        proc = subprocess.run([sys.executable, "-c", IMPORT, "svg", str(tmp_path / "c.png")],
+                              capture_output=True, text=True, env=env, timeout=300)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        return json.loads(proc.stdout.splitlines()[-1])
+
+    own = "--xla_cpu_enable_concurrency_optimized_scheduler=true --xla_cpu_use_thunk_runtime=true"
+    assert imported(own) == ["svg", "svg", own, own]
+    assert imported(None) == ["svg", "svg", None, CPU_FLAG]
+    assert imported("--xla_cpu_use_thunk_runtime=true") == [
+        "svg", "svg", "--xla_cpu_use_thunk_runtime=true",
+        f"--xla_cpu_use_thunk_runtime=true {CPU_FLAG}"]
+    assert (tmp_path / "c.png").read_bytes()[:4] == b"\x89PNG"

@@ -1,4 +1,5 @@
-"""The actor-critic agent, the baselines and the landscapes, with the predefined fitness (fast);
+"""The actor-critic agent, the baselines and the bodies a space enumerates, with the predefined
+fitness (fast);
 and a smoke run of every experiment script at a tiny budget."""
 
 import json
@@ -13,7 +14,7 @@ import pytest
 from test_spaces import reachable, reachable_batched
 
 import evojax_morph as em
-from evojax_morph import agents, landscape
+from evojax_morph import agents
 from evojax_morph.agents import a2c, baselines
 from evojax_morph.fitnesses import table as tb
 from evojax_morph.pipeline import RunConfig, build
@@ -236,7 +237,9 @@ def test_random_walks_restart():
     )
 
 
-def test_landscape_enumerates_ranks_and_round_trips(tmp_path):
+def test_enumerated_bodies_are_told_apart_by_shape():
+    """`enumerate_bodies` lists every body reachable from m0 once, by `canonical` name (slot
+    numbers and sibling order ignored), m0 first; the predefined fitness's best is m*."""
     space = em.make_space("bad_walker")
     # back foot to front_end (site 3) and front foot to back_end (site 0), or the other way
     swapped = space.mutate(space.mutate(space.initial(), 2, 3), 3, 0)
@@ -244,18 +247,15 @@ def test_landscape_enumerates_ranks_and_round_trips(tmp_path):
     assert space.canonical(swapped) == space.canonical(same)  # identical short feet
     assert space.canonical(swapped) != space.canonical(space.initial())
 
-    ls = landscape.measure(space, em.FitnessConfig(kind="predefined"), 2, jax.random.PRNGKey(0))
+    bodies, depths = space.enumerate_bodies()
     slots = reachable(space)  # an independent BFS, telling bodies apart by slot
     distinct = {space.canonical(m) for m in slots}
-    assert len(slots) == 150 and len(ls.keys) == len(distinct) == 90 and ls.depths[0] == 0
-    assert space.canonical(ls.best()) == space.canonical(space.optimum())
-    assert ls.rank(space.optimum()) == 1 and ls.regret(space.optimum()) == 0.0
-    m0 = ls.index(space.initial())
-    assert ls.rank(space.initial()) == 1 + int((ls.mean > ls.mean[m0]).sum()) > 1
-    np.testing.assert_array_equal(ls.std, 0.0)  # deterministic fitness
-    ls.save(tmp_path / "ls.json")
-    back = landscape.Landscape.load(tmp_path / "ls.json")
-    assert back.keys == ls.keys and back.rank(space.initial()) == ls.rank(space.initial())
+    names = [space.canonical(m) for m in bodies]
+    assert len(slots) == 150 and len(set(names)) == len(names) == len(distinct) == 90
+    assert set(names) == distinct and depths[0] == 0
+    assert names[0] == space.canonical(space.initial())
+    fitness = np.asarray(jax.vmap(space.predefined_fitness)(em.stack(bodies)))
+    assert names[int(fitness.argmax())] == space.canonical(space.optimum())
 
 
 @pytest.mark.parametrize(

@@ -16,7 +16,7 @@ def test_tasks_are_registered_by_name():
     walk = em.make_task("walk", episode_length=50)
     assert walk.name == "walk" and walk.episode_length == 50 and walk.healthy_reward > 0
     assert em.FitnessConfig.from_dict(em.FitnessConfig(task=walk).to_dict()).task == walk
-    with pytest.raises(ValueError, match="unknown task 'run'; choose one of distance, walk"):
+    with pytest.raises(ValueError, match="unknown task 'run'; known tasks: distance, walk"):
         em.make_task("run")
     with pytest.raises(ValueError, match=r"unknown task settings \['speed'\]"):
         em.make_task("walk", speed=1.0)

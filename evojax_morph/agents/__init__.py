@@ -24,24 +24,25 @@ from evojax_morph.evolution import EvolutionEnv
 
 
 class AgentKind(NamedTuple):
-    """A registered agent: its config dataclass (None: nothing to set) and its policy."""
+    """A registered agent: its name, its config dataclass (None: nothing to set), its policy
+    and its check of a run's settings."""
 
+    name: str  # what `make_agent` and the CLI's --agent call it
     config: type | None
     make_policy: Callable  # make_policy(env, cfg) -> Policy
     check: Callable | None = None  # check(num_envs, population, tournament): ValueError if not
 
 
-_REGISTRY: dict[str, AgentKind] = {
-    "ddqn": AgentKind(dqn.DQNConfig, dqn.make_policy),
-    "dqn": AgentKind(dqn.PlainDQNConfig, dqn.make_policy),
-    "qrdqn": AgentKind(qrdqn.QRDQNConfig, qrdqn.make_policy),
-    "a2c": AgentKind(a2c.A2CConfig, a2c.make_policy),
-    "random": AgentKind(None, baselines.make_random),
-    "evolution": AgentKind(None, baselines.make_evolution, baselines.check_evolution),
-    "regularized_evolution": AgentKind(baselines.RegularizedEvolutionConfig,
-                                       baselines.make_regularized_evolution,
-                                       baselines.check_regularized_evolution),
-}
+_REGISTRY: dict[str, AgentKind] = {k.name: k for k in (
+    AgentKind("ddqn", dqn.DQNConfig, dqn.make_policy),
+    AgentKind("dqn", dqn.PlainDQNConfig, dqn.make_policy),
+    AgentKind("qrdqn", qrdqn.QRDQNConfig, qrdqn.make_policy),
+    AgentKind("a2c", a2c.A2CConfig, a2c.make_policy),
+    AgentKind("random", None, baselines.make_random),
+    AgentKind("evolution", None, baselines.make_evolution, baselines.check_evolution),
+    AgentKind("regularized_evolution", baselines.RegularizedEvolutionConfig,
+              baselines.make_regularized_evolution, baselines.check_regularized_evolution),
+)}
 
 
 def list_agents() -> list[str]:
@@ -49,7 +50,8 @@ def list_agents() -> list[str]:
     return list(_REGISTRY)
 
 
-def _kind(name: str) -> AgentKind:
+def get_agent(name: str) -> AgentKind:
+    """The agent registered as `name`."""
     if name not in _REGISTRY:
         raise ValueError(f"unknown agent {name!r}; choose one of {', '.join(_REGISTRY)}")
     return _REGISTRY[name]
@@ -59,7 +61,7 @@ def settings_problem(name: str, num_envs: int, population: int = 0,
                      tournament: int = 0) -> str | None:
     """Why agent `name` cannot run `num_envs` evolutions with these settings (None: it can),
     checked before anything compiles."""
-    check = _kind(name).check
+    check = get_agent(name).check
     try:
         if check is not None:
             check(num_envs, population, tournament)
@@ -70,7 +72,7 @@ def settings_problem(name: str, num_envs: int, population: int = 0,
 
 def config_for_run(name: str, env: EvolutionEnv, run: RunOptions) -> Any:
     """The config of agent `name` that a run's settings give it (None for the baselines)."""
-    config = _kind(name).config
+    config = get_agent(name).config
     return None if config is None else config.for_run(env, run)
 
 
@@ -79,7 +81,7 @@ def make_policy(name: str, env: EvolutionEnv, cfg: Any = None, **overrides) -> P
 
     cfg: its config (default: the config's defaults); `overrides` replace fields of it.
     """
-    kind = _kind(name)
+    kind = get_agent(name)
     if kind.config is not None:
         cfg = dataclasses.replace(kind.config() if cfg is None else cfg, **overrides)
     elif cfg is not None or overrides:
@@ -100,6 +102,7 @@ __all__ = [
     "RunOptions",
     "Transition",
     "config_for_run",
+    "get_agent",
     "settings_problem",
     "from_policy",
     "list_agents",

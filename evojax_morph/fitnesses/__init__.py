@@ -1,8 +1,9 @@
 """Fitness kinds, registered by name; `evojax_morph.fitness` evaluates any of them.
 
 To add a kind: write a module of this package defining its `make(space, cfg) -> (init,
-evaluate)`, its settings check and its typical scale as a `Fitness`, and list it below. Its own
-settings go in `FitnessConfig` (base.py) when it has any.
+evaluate)`, its settings check and its typical scale as a `Fitness`, with its rules (the
+engines it steps on, its default task, its check of the files it reads), and list it below. Its
+own settings go in `FitnessConfig` (base.py) when it has any.
 """
 
 from evojax_morph.fitnesses import ppo, predefined, table, tame
@@ -10,13 +11,15 @@ from evojax_morph.fitnesses.base import (
     Fitness,
     FitnessConfig,
     FitnessResult,
+    Inputs,
     get_fitness,
     list_fitnesses,
     register,
+    resolve_physics,
 )
 from evojax_morph.fitnesses.ppo import standard_ppo
 
 register(ppo.FITNESS, predefined.FITNESS, tame.FITNESS, table.FITNESS)
 
-__all__ = ["Fitness", "FitnessConfig", "FitnessResult", "get_fitness", "list_fitnesses", "register",
-           "standard_ppo"]
+__all__ = ["Fitness", "FitnessConfig", "FitnessResult", "Inputs", "get_fitness", "list_fitnesses",
+           "register", "resolve_physics", "standard_ppo"]

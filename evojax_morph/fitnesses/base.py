@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from evojax_morph.engines import list_engines
+from evojax_morph.engines import AUTO, list_engines, resolve
 from evojax_morph.locomotion import TaskConfig
 from evojax_morph.ppo import Params, PPOConfig
 from evojax_morph.spaces import Space
@@ -51,7 +51,10 @@ class FitnessConfig:
             raise ValueError(
                 f"unknown physics {self.physics!r}; choose one of {', '.join(list_engines())}"
             )
-        get_fitness(self.kind).validate(self)
+        kind = get_fitness(self.kind)
+        if kind.engines and self.physics not in kind.engines:
+            raise ValueError(f"{_bound(kind)}, not {self.physics!r}")
+        kind.validate(self)
 
     def with_controllers(self, k: int) -> FitnessConfig:
         """This config with K = `k` controllers per body."""
@@ -92,6 +95,16 @@ def untrained_result(fitness: jax.Array, diverged: jax.Array, params, env_steps:
                          env_steps=env_steps)
 
 
+class Inputs(NamedTuple):
+    """What a run gives a fitness kind beyond its settings: the space's name, the task asked for
+    ("": none) and the files the kind reads (`FitnessConfig`'s classifier and table)."""
+
+    space: str
+    task: str = ""
+    classifier: str = ""
+    table: str = ""
+
+
 class Fitness(NamedTuple):
     """A kind of fitness, registered by name.
 
@@ -106,6 +119,14 @@ class Fitness(NamedTuple):
       the bodies, replayed by `render`).
     deterministic: whether a body's fitness is the same for every key (evaluating it again
       tells nothing new: `run` skips its confirm stage).
+    engines: the engines its worlds step on: None for the one `FitnessConfig.physics` names
+      (the run's choice), a tuple for a kind bound to those, () for a kind that simulates
+      nothing (`resolve_physics`).
+    default_task(inputs) -> str: the task of a run that names none (`Inputs.task` ""): "walk"
+      unless the kind's results were trained under another.
+    check(inputs): raises ValueError, saying why, where the files the kind reads are missing or
+      do not fit the space or the task; run before anything compiles (the `run` command's exit
+      2).
     """
 
     name: str
@@ -114,6 +135,29 @@ class Fitness(NamedTuple):
     make: Callable[[Space, FitnessConfig], tuple[Callable | None, Callable]]
     trains_controllers: bool = False
     deterministic: bool = False
+    engines: tuple[str, ...] | None = None
+    default_task: Callable[[Inputs], str] = lambda inputs: "walk"
+    check: Callable[[Inputs], None] = lambda inputs: None
+
+
+def _bound(kind: Fitness) -> str:
+    return f"the {kind.name} fitness runs on the {' or '.join(kind.engines)} engine only"
+
+
+def resolve_physics(kind: str, name: str) -> tuple[str, str]:
+    """`(engine, why)`: the engine a fitness of `kind` takes when asked for `name` ("auto"
+    resolved by `engines.resolve`, or to the first engine of a kind bound to some).
+
+    Raises:
+      ValueError: `name` is unknown, or not an engine the kind is bound to.
+      RuntimeError: the engine cannot run here (with the reason).
+    """
+    bound = get_fitness(kind).engines
+    if bound:
+        if name not in (AUTO, *bound):
+            raise ValueError(_bound(get_fitness(kind)))
+        name = bound[0] if name == AUTO else name
+    return resolve(name)
 
 
 _REGISTRY: dict[str, Fitness] = {}

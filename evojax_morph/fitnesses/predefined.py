@@ -24,4 +24,5 @@ FITNESS = Fitness(
     scale=lambda space: space.fitness_scale,
     make=make,
     deterministic=True,
+    engines=(),
 )

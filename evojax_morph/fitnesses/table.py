@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_morph.fitnesses.base import Fitness, FitnessConfig, FitnessResult
+from evojax_morph.fitnesses.base import Fitness, FitnessConfig, FitnessResult, Inputs
 from evojax_morph.morphology import Morphology, stack
 from evojax_morph.spaces import Space
 
@@ -46,7 +46,12 @@ def default_path(space_name: str) -> Path:
 
 def table_path(space: Space, cfg: FitnessConfig) -> Path:
     """The table `cfg` names, or the packaged one of `space`."""
-    return Path(cfg.table) if cfg.table else default_path(space.name)
+    return named_path(Inputs(space.name, table=cfg.table))
+
+
+def named_path(inputs: Inputs) -> Path:
+    """The table `inputs` names, or the packaged one of their space."""
+    return Path(inputs.table) if inputs.table else default_path(inputs.space)
 
 
 @dataclasses.dataclass
@@ -109,10 +114,6 @@ class Table:
         """(T,) each body's mean over its results: its true fitness, as far as the table
         knows."""
         return np.nanmean(self.fitness, 1)
-
-    def sem(self) -> np.ndarray:
-        """(T,) the standard error of each body's mean."""
-        return np.nanstd(self.fitness, 1, ddof=1) / np.sqrt(self.counts())
 
     def row(self, space: Space, m: Morphology) -> int:
         """The row of body `m` (outside jit); a ValueError naming it if the table lacks it."""
@@ -276,13 +277,34 @@ def task_of(path: Path) -> str:
         return "distance"
 
 
+def default_task(inputs: Inputs) -> str:
+    """The task the table was built under: its results were trained under it."""
+    return task_of(named_path(inputs))
+
+
+def _other_task(path: Path, built: str, asked: str) -> str:
+    return (f"the table {str(path)!r} was built under the task {built!r}, but the fitness asks "
+            f"for {asked!r} (--task): ask for {built!r} or build a table under {asked!r} "
+            f"(`python -m experiments.build_tables --task {asked}`)")
+
+
+def check(inputs: Inputs) -> None:
+    """The table file is there, built under the task asked for (if any)."""
+    path = named_path(inputs)
+    if not path.is_file():
+        raise ValueError(
+            f"--fitness table: no table at {str(path)!r}; build one with `python -m "
+            f"experiments.build_tables --space {inputs.space} --out PATH` and pass --table PATH"
+        )
+    built = task_of(path)
+    if inputs.task and inputs.task != built:
+        raise ValueError(_other_task(path, built, inputs.task))
+
+
 def make(space: Space, cfg: FitnessConfig):
     table, sigs_np = load(space, cfg)
     if table.task != cfg.task.name:
-        raise ValueError(f"the table {table_path(space, cfg)} was built under the task "
-                         f"{table.task!r}, but the fitness asks for {cfg.task.name!r}: build "
-                         f"a table under {cfg.task.name!r} (`python -m experiments.build_tables "
-                         f"--task {cfg.task.name}`) or ask for {table.task!r}")
+        raise ValueError(_other_task(table_path(space, cfg), table.task, cfg.task.name))
     k, seeds = cfg.ppo.controllers, table.seeds
     if k > table.base:
         raise ValueError(f"{k} controllers per body, but the table holds {table.base} results "
@@ -331,7 +353,8 @@ def make(space: Space, cfg: FitnessConfig):
     return None, evaluate
 
 
-FITNESS = Fitness(name="table", validate=validate, scale=lambda space: 100.0, make=make)
+FITNESS = Fitness(name="table", validate=validate, scale=lambda space: 100.0, make=make,
+                  engines=(), default_task=default_task, check=check)
 
 
 def stacked(bodies: list[Morphology]) -> Morphology:

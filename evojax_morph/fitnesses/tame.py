@@ -7,22 +7,46 @@ F(m) from fresh random-primitive rollouts of each body, scored by the saved clas
 from __future__ import annotations
 
 import functools
+import json
+from pathlib import Path
 
 import jax
 
-from evojax_morph.fitnesses.base import Fitness, FitnessConfig, FitnessResult, untrained_result
+from evojax_morph.fitnesses.base import (
+    Fitness,
+    FitnessConfig,
+    FitnessResult,
+    Inputs,
+    untrained_result,
+)
 from evojax_morph.spaces import Space, make_space
 from evojax_morph.tame import Pretrained, Tame, over_bodies
 
 
 def validate(cfg: FitnessConfig) -> None:
-    if cfg.physics != "jax":
-        raise ValueError(f"the tame fitness runs on the JAX engine only, not {cfg.physics!r}")
     if not cfg.classifier:
         raise ValueError(
             "the tame fitness needs classifier= the directory of a trained TAME classifier "
             "(train one with `python -m evojax_morph.tame --space SPACE --out DIR`)"
         )
+
+
+def _other_space(classifier: str, trained_on: str, space: str) -> str:
+    return (f"the TAME classifier in {classifier!r} was trained on {trained_on}, another space "
+            f"than {space}")
+
+
+def check(inputs: Inputs) -> None:
+    """A classifier in `inputs.classifier`, trained on the space."""
+    meta = Path(inputs.classifier) / "tame.json"
+    if not inputs.classifier or not meta.exists():
+        raise ValueError(
+            "--fitness tame needs --classifier DIR, a classifier trained by "
+            f"`python -m evojax_morph.tame --space {inputs.space} --out DIR`"
+        )
+    trained_on = json.loads(meta.read_text())["space"]
+    if trained_on != inputs.space:
+        raise ValueError(_other_space(inputs.classifier, trained_on, inputs.space))
 
 
 @functools.lru_cache(maxsize=4)
@@ -39,10 +63,7 @@ def load(path: str):
 def make(space: Space, cfg: FitnessConfig):
     trained_on, tame_cfg, fitness = load(str(cfg.classifier))
     if trained_on != space.name:
-        raise ValueError(
-            f"the TAME classifier in {cfg.classifier!r} was trained on {trained_on}, "
-            f"not {space.name}"
-        )
+        raise ValueError(_other_space(cfg.classifier, trained_on, space.name))
     env_steps = tame_cfg.episodes * tame_cfg.episode_length
 
     def evaluate(keys: jax.Array, morphs, params) -> FitnessResult:
@@ -52,4 +73,5 @@ def make(space: Space, cfg: FitnessConfig):
     return None, evaluate
 
 
-FITNESS = Fitness(name="tame", validate=validate, scale=lambda space: 1.0, make=make)
+FITNESS = Fitness(name="tame", validate=validate, scale=lambda space: 1.0, make=make,
+                  engines=("jax",), check=check)

@@ -21,12 +21,18 @@ def list_spaces() -> list[str]:
     return sorted(_REGISTRY)
 
 
-def make_space(name: str, **kwargs) -> Space:
-    """The space registered as `name`; keyword arguments go to its constructor."""
+def get_space(name: str) -> type[Space]:
+    """The space class registered as `name`: its rules (`Space.gpu_defaults`) without building
+    its template."""
     if name not in _REGISTRY:
         raise ValueError(f"unknown space {name!r}; known spaces: {', '.join(list_spaces())}")
-    return _REGISTRY[name](**kwargs)
+    return _REGISTRY[name]
 
 
-__all__ = ["BadWalker", "Constructor", "Crawler", "LengthWalker", "Space", "list_spaces",
-           "make_space"]
+def make_space(name: str, **kwargs) -> Space:
+    """The space registered as `name`; keyword arguments go to its constructor."""
+    return get_space(name)(**kwargs)
+
+
+__all__ = ["BadWalker", "Constructor", "Crawler", "LengthWalker", "Space", "get_space",
+           "list_spaces", "make_space"]

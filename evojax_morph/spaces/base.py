@@ -54,6 +54,31 @@ class Space(abc.ABC):
     max_nodes: int
     default_horizon: int  # mutations per episode of the evolution MDP when none is asked for
 
+    # --- a run's defaults on a GPU (mujoco_playground's `default_config`) -------------------
+
+    @classmethod
+    def gpu_defaults(cls) -> dict:
+        """The settings (`RunConfig` fields) a run of this space takes on a GPU, where the
+        same command evaluates a larger batch with a longer PPO budget; the controllers per
+        body come from `gpu_controllers`."""
+        return {
+            "num_envs": 256,
+            "train_steps": 50_000,
+            "steps": 100,
+            "explore_steps": 50,
+            "learning_starts": 256,
+            "chunk": 10,
+            "checkpoint_every": 2,
+            "confirm": 8,
+            "confirm_controllers": 32,
+        }
+
+    @classmethod
+    def gpu_controllers(cls, engine) -> int:
+        """Controllers per body on a GPU for a fitness stepping on `engine` (an `Engine`): the
+        engine's own (`Engine.gpu_controllers`), which spend its speed on less noise."""
+        return engine.gpu_controllers
+
     # --- what a space defines -------------------------------------------------------------
 
     @abc.abstractmethod
