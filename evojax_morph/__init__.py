@@ -1,25 +1,25 @@
 """evojax_morph: robot morphology design as a Markov Decision Process, on JAX and MJX."""
 
-from evojax_morph import physics  # noqa: F401  (first: it imports mjx quietly)
-from evojax_morph.bodylog import best_bodies
-from evojax_morph.confirm import Confirmed, confirm
-from evojax_morph.controllers import SavedController
-from evojax_morph.controllers import load as load_controller
-from evojax_morph.determinism import (
+from evojax_morph.fitnesses import FitnessConfig, FitnessResult, list_fitnesses, standard_ppo
+from evojax_morph.fitnesses.batched import evaluate, init_params
+from evojax_morph.morphology import Morphology, format_tree, stack, unstack
+from evojax_morph.physics import templates  # noqa: F401  (first: it imports mjx quietly)
+from evojax_morph.physics.determinism import (
     cpu_scheduler_workaround,
     deterministic_gpu,
     persistent_cache,
 )
-from evojax_morph.engines import list_engines
-from evojax_morph.fitness import evaluate, init_params
-from evojax_morph.fitnesses import FitnessConfig, FitnessResult, list_fitnesses, standard_ppo
-from evojax_morph.locomotion import Locomotion, TaskConfig, list_tasks, make_task
-from evojax_morph.morphology import Morphology, format_tree, stack, unstack
+from evojax_morph.physics.engines import list_engines
 from evojax_morph.ppo import Params, PPOConfig, make_train
+from evojax_morph.run.bodylog import best_bodies
+from evojax_morph.run.confirm import Confirmed, confirm
+from evojax_morph.run.saved_controllers import SavedController
+from evojax_morph.run.saved_controllers import load as load_controller
+from evojax_morph.run.video import render as render_video
+from evojax_morph.run.video import replay
 from evojax_morph.sharding import batch_mesh, init_distributed
 from evojax_morph.spaces import Space, list_spaces, make_space
-from evojax_morph.video import render as render_video
-from evojax_morph.video import replay
+from evojax_morph.tasks import Locomotion, TaskConfig, list_tasks, make_task
 
 # The one side effect of importing evojax_morph, and it must stay here: XLA's CPU runtime of
 # this jaxlib (0.10.2) can deadlock running a large vmapped MJX program (the Constructor's
@@ -73,11 +73,11 @@ def __getattr__(name: str):
     (the `gym` extra) and stable-baselines3 (the `sb3` extra), so they are left out of
     `__all__`."""
     if name == "GymEvolutionEnv":
-        from evojax_morph.gym_env import GymEvolutionEnv
+        from evojax_morph.envs.gym_env import GymEvolutionEnv
 
         return GymEvolutionEnv
     if name == "SB3EvolutionEnv":
-        from evojax_morph.sb3_env import SB3EvolutionEnv
+        from evojax_morph.envs.sb3_env import SB3EvolutionEnv
 
         return SB3EvolutionEnv
     raise AttributeError(f"module 'evojax_morph' has no attribute {name!r}")

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import jax
 
-from evojax_morph import controllers, video
+from evojax_morph.run import saved_controllers, video
 
 
 def parse(argv) -> argparse.Namespace:
@@ -63,7 +63,7 @@ def parse(argv) -> argparse.Namespace:
         parser.error(f"no run directory {args.run_dir!r}")
     args.body = " ".join(args.body)
     try:
-        args.saved = controllers.load(controllers.body_dir(Path(args.run_dir), args.body))
+        args.saved = saved_controllers.load(saved_controllers.body_dir(Path(args.run_dir), args.body))
     except (ValueError, FileNotFoundError) as e:
         parser.error(str(e))
     k = args.saved.fitness.ppo.controllers

@@ -26,9 +26,10 @@ import jax
 import matplotlib.pyplot as plt
 
 import evojax_morph as em
-from evojax_morph import locomotion, plots, run, video
-from evojax_morph.bodylog import shapes
-from evojax_morph.controllers import SavedController
+from evojax_morph import tasks
+from evojax_morph.run import cli, plots, video
+from evojax_morph.run.bodylog import shapes
+from evojax_morph.run.saved_controllers import SavedController
 
 OUT = Path(sys.argv[1] if len(sys.argv) > 1 else "tutorial_out")
 OUT.mkdir(parents=True, exist_ok=True)
@@ -116,7 +117,7 @@ table = Path(__file__).resolve().parent.parent / "docs/landscapes/bad_walker_wal
 flags = ["--space", "bad_walker", "--fitness", "table", "--table", str(table),
          "--controllers", "4", "--num-envs", "8", "--steps", "20", "--explore-steps", "10",
          "--confirm", "4", "--confirm-controllers", "16", "--out", str(run_dir)]
-assert run.main(flags) == 0
+assert cli.main(flags) == 0
 summary = json.loads((run_dir / "summary.json").read_text())
 for c in summary["confirmed"]:
     print(f"{c['body']}: {c['mean']:.1f} [{c['ci95'][0]:.1f}, {c['ci95'][1]:.1f}]")
@@ -152,7 +153,7 @@ best = shapes(log, space, [best_name])[best_name]
 [confirmed] = em.confirm(space, em.stack([best]), jax.random.PRNGKey(3), ppo, controllers=4)
 print(f"{best_name}: fitness {confirmed.mean:.1f}, {confirmed.distance.mean():.2f} m, "
       f"upright the whole episode in {confirmed.upright_whole:.0%}:",
-      locomotion.gait_word(confirmed.distance.mean(), confirmed.upright_whole))
+      tasks.gait_word(confirmed.distance.mean(), confirmed.upright_whole))
 
 k = int(confirmed.values.argmax())
 saved = SavedController(space, ppo.with_controllers(1), seed=3, morph=confirmed.morph,

@@ -18,10 +18,10 @@ Timings exclude compilation (a warm-up call first) and are medians of --repeats 
 --train-steps 0, the evaluation episodes alone) splits a call into learner and rollouts.
 Its device traces (`--trace DIR`) and its count of Warp's graph captures answered where a
 Warp call's time goes (docs/benchmarks.md) and are retired (at git 88d6bf1).
---physics names the engine (`evojax_morph.engines`); --deterministic asks XLA for deterministic
+--physics names the engine (`evojax_morph.physics.engines`); --deterministic asks XLA for deterministic
 GPU ops first, as the run command does on the JAX engine unless --fast-gpu (on Warp it leaves
 them off: they buy no reproducibility there); --warp-deterministic MuJoCo Warp's
-`Option.deterministic`, under EVOJAX_MORPH_MUJOCO_WARP=package (`evojax_morph.physics`).
+`Option.deterministic`, under EVOJAX_MORPH_MUJOCO_WARP=package (`evojax_morph.physics.templates`).
 
   python -m experiments.bench_fitness --batches 1 16                 # CPU
   python -m experiments.bench_fitness --batches 1 256 1024 4096 --physics warp
@@ -45,11 +45,12 @@ import numpy as np
 import scipy.stats
 
 import evojax_morph as em
-from evojax_morph import engines, ppo
-from evojax_morph import warp as ew
-from evojax_morph.confirm import t_interval
-from evojax_morph.determinism import full_precision
-from evojax_morph.physics import MUJOCO_WARP
+from evojax_morph import ppo
+from evojax_morph.physics import engines
+from evojax_morph.physics import warp as ew
+from evojax_morph.physics.determinism import full_precision
+from evojax_morph.physics.templates import MUJOCO_WARP
+from evojax_morph.run.confirm import t_interval
 
 STANDARD = em.FitnessConfig(ppo=em.standard_ppo(10_000))
 
@@ -154,7 +155,7 @@ def main():
     )
     parser.add_argument("--deterministic", action="store_true", help="XLA's deterministic GPU ops")
     parser.add_argument("--warp-deterministic", action="store_true",
-                        help="MuJoCo Warp's Option.deterministic (evojax_morph.warp)")
+                        help="MuJoCo Warp's Option.deterministic (evojax_morph.physics.warp)")
     parser.add_argument("--out", default=None, help="append each row to this JSON-lines file")
     parser.add_argument("--mutations", type=int, default=3, help="random mutations a body")
     parser.add_argument("--classes", action="store_true",
@@ -170,7 +171,7 @@ def main():
         em.deterministic_gpu()
     if args.warp_deterministic and not ew.set_deterministic(True):
         parser.error("--warp-deterministic: MJX runs its vendored MuJoCo Warp, which has no "
-                     "such option; set EVOJAX_MORPH_MUJOCO_WARP=package (evojax_morph.physics)")
+                     "such option; set EVOJAX_MORPH_MUJOCO_WARP=package (evojax_morph.physics.templates)")
     full_precision()  # as the run command
 
     space = em.make_space(args.space)

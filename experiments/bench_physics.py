@@ -34,10 +34,10 @@ import mujoco
 import numpy as np
 
 import evojax_morph as em
-from evojax_morph import classes, physics
-from evojax_morph import warp as ew
-from evojax_morph.determinism import full_precision
-from evojax_morph.physics import mjx
+from evojax_morph.physics import classes, templates
+from evojax_morph.physics import warp as ew
+from evojax_morph.physics.determinism import full_precision
+from evojax_morph.physics.templates import mjx
 
 
 def controls(data, t, timestep):
@@ -141,7 +141,7 @@ def bench_space(spec: str, physics_kinds: list[str], batch: int, envs: int, step
             data = jax.vmap(lambda model: broadcast_data(model, 1, envs)[0])(models)
             nested = make_rollout(steps, batched_models=True)
             t_nested = time_rollout(nested, models, data, repeats)
-            flat, axes = physics.flat_models(models, envs, space.plan.specialised_fields)
+            flat, axes = templates.flat_models(models, envs, space.plan.specialised_fields)
             flat_data = broadcast_data(padded, 1, worlds)[0]
             t_flat = time_rollout(make_flat_rollout(steps, axes), flat, flat_data, repeats)
         else:
@@ -154,7 +154,7 @@ def bench_space(spec: str, physics_kinds: list[str], batch: int, envs: int, step
             padded, _ = ew.to_warp(space, one, 1, graph_mode=graph_mode)
             padded_data = ew.make_worlds(space, worlds, naconmax, njmax)
             t_padded = time_rollout(rollout, padded, padded_data, repeats)
-            t_nested = None  # a nested vmap is wrong under Warp (see evojax_morph.warp)
+            t_nested = None  # a nested vmap is wrong under Warp (see evojax_morph.physics.warp)
             flat, flat_data = ew.to_warp(space, models, envs, naconmax, njmax, graph_mode)
             t_flat = time_rollout(rollout, flat, flat_data, repeats)
         by_class = batch_padding(space, kind, morphs, envs, steps, repeats, graph_mode, naconmax,
@@ -185,7 +185,7 @@ def bench_space(spec: str, physics_kinds: list[str], batch: int, envs: int, step
 def batch_padding(space, kind, morphs, envs, steps, repeats, graph_mode, naconmax, njmax,
                   ideal_bodies: int):
     """The padding cost of the batch `morphs` (B bodies x `envs` worlds, flat) on the full
-    template and grouped by size class (`evojax_morph.classes`: each class's places, unused ones
+    template and grouped by size class (`evojax_morph.physics.classes`: each class's places, unused ones
     m0), against the mean time of each body's own unpadded model stepping the same B x E worlds
     (over the first `ideal_bodies`, a random sample: each unpadded body compiles anew):
     `batch_padding_cost` and `classes_padding_cost`, 1 - unpadded / padded."""
@@ -200,7 +200,7 @@ def batch_padding(space, kind, morphs, envs, steps, repeats, graph_mode, naconma
             return time_rollout(shared, model, broadcast_data(model, batch, envs), repeats)
 
         def padded(sp, ms):
-            flat, axes = physics.flat_models(jax.vmap(sp.mjx_model)(ms), envs,
+            flat, axes = templates.flat_models(jax.vmap(sp.mjx_model)(ms), envs,
                                              sp.plan.specialised_fields)
             data = broadcast_data(sp.mjx_template(), 1, ms.active.shape[0] * envs)[0]
             return time_rollout(make_flat_rollout(steps, axes), flat, data, repeats)

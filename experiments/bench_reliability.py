@@ -38,8 +38,9 @@ import numpy as np
 import scipy.stats
 
 import evojax_morph as em
-from evojax_morph import engines, ppo
-from evojax_morph.determinism import full_precision
+from evojax_morph import ppo
+from evojax_morph.physics import engines
+from evojax_morph.physics.determinism import full_precision
 
 # The main job's inner PPO on a GPU today (run.py: 16 envs, 20-step unrolls, 50,000 steps).
 STANDARD = em.standard_ppo(50_000)

@@ -33,8 +33,8 @@ import jax
 
 import evojax_morph as em
 from evojax_morph.agents import dqn
-from evojax_morph.determinism import full_precision
-from evojax_morph.pipeline import RunConfig, build
+from evojax_morph.physics.determinism import full_precision
+from evojax_morph.run.pipeline import RunConfig, build
 from evojax_morph.sharding import batch_mesh
 from experiments.bench_fitness import STANDARD, median_time
 from experiments.bench_fitness import agreement as fitness_agreement

@@ -24,7 +24,7 @@ controllers learn --task (`em.list_tasks()`; "distance", the source's task and t
 tables', by default), recorded in the metadata ("task"): the table fitness serves that task
 only, so a table of another task needs its own --out.
 
-Writes evojax_morph/tables/SPACE.npz by default (the table fitness's packaged table).
+Writes evojax_morph/fitnesses/tables/SPACE.npz by default (the table fitness's packaged table).
 """
 
 from __future__ import annotations
@@ -44,9 +44,9 @@ import numpy as np
 
 import evojax_morph as em
 from evojax_morph import ppo
-from evojax_morph.determinism import full_precision
 from evojax_morph.fitnesses import table as tables
-from evojax_morph.run import start_deterministic
+from evojax_morph.physics.determinism import full_precision
+from evojax_morph.run.cli import start_deterministic
 
 GPU_TRAIN_STEPS = 50_000  # `run`'s GPU budget per controller (`Space.gpu_defaults`)
 
@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     add("--task", default="distance", choices=em.list_tasks(),
         help="the task the controllers learn (`em.make_task`); the table fitness serves only "
         "this task")
-    add("--out", default=None, help="the table (.npz); default: evojax_morph/tables/SPACE.npz")
+    add("--out", default=None, help="the table (.npz); default: evojax_morph/fitnesses/tables/SPACE.npz")
     add("--max-batches", type=int, default=None, help="stop after this many batches")
     add("--deep-top", type=int, default=0,
         help="give the N bodies of the highest means --deep-seeds results (0: none)")

@@ -20,7 +20,7 @@ import numpy as np
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from evojax_morph.pipeline import RunConfig, build  # noqa: E402
+from evojax_morph.run.pipeline import RunConfig, build  # noqa: E402
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,7 +34,7 @@ class Setup:
     chunk: int = 4
     hidden: int = 64
     horizon: int = 0  # 0: the space's default
-    physics: str = "jax"  # the PPO fitness's engine: jax | warp (`evojax_morph.engines`)
+    physics: str = "jax"  # the PPO fitness's engine: jax | warp (`evojax_morph.physics.engines`)
 
 
 def add_setup_flags(parser, seeds: int = 3, **defaults):

@@ -25,7 +25,7 @@ import jax
 import numpy as np
 
 import evojax_morph as em
-from evojax_morph import controllers, video
+from evojax_morph.run import saved_controllers, video
 from evojax_morph.spaces.crawler import ADD, EXTEND
 from experiments.build_tables import revision
 from experiments.common import plt, save
@@ -84,7 +84,7 @@ def main(argv=None) -> int:
         if steps == max(args.budgets):  # keep the best controller of the best body
             i = int(np.argmax([c.mean for c in rows]))
             j = int(np.argmax(rows[i].values))
-            controllers.save(args.out / "crawler_best", controllers.SavedController(
+            saved_controllers.save(args.out / "crawler_best", saved_controllers.SavedController(
                 space, cfg, steps, rows[i].morph, jax.tree.map(lambda x, j=j: x[j], rows[i].params),
                 float(rows[i].values[j]), BODIES[i][0]))
         data["budgets"][str(steps)] = [{
@@ -103,7 +103,7 @@ def main(argv=None) -> int:
         print("out of --budget: run the same command again")
         return 0
     if not (args.out / "crawler_best.gif").exists():
-        saved = controllers.load(args.out / "crawler_best")
+        saved = saved_controllers.load(args.out / "crawler_best")
         shown = video.render_saved(saved, args.out / "crawler_best", width=640, height=360)
         print(f"{saved.label}: walked {shown.replay.distance[-1]:+.2f} m in one episode, "
               f"drawn by {shown.backend}")

@@ -40,10 +40,10 @@ import numpy as np
 import scipy.stats
 
 import evojax_morph as em
-from evojax_morph import plots
-from evojax_morph.confirm import t_interval
-from evojax_morph.determinism import full_precision
-from evojax_morph.pipeline import NO_OP, agent_config, build, make_greedy_rollout
+from evojax_morph.physics.determinism import full_precision
+from evojax_morph.run import plots
+from evojax_morph.run.confirm import t_interval
+from evojax_morph.run.pipeline import NO_OP, agent_config, build, make_greedy_rollout
 from experiments.build_tables import revision
 from experiments.common import Setup, band, episode_returns, plt, run_agent, run_config, save
 

@@ -10,8 +10,8 @@ from test_spaces import reachable
 import evojax_morph as em
 from evojax_morph import agents
 from evojax_morph.agents import dqn, qrdqn
-from evojax_morph.evolution import REMEASURE, EvolutionEnv, masked_argmax
-from evojax_morph.pipeline import RunConfig, build
+from evojax_morph.mdp import REMEASURE, EvolutionEnv, masked_argmax
+from evojax_morph.run.pipeline import RunConfig, build
 
 HORIZON, NUM_ENVS, CHUNK, CHUNKS = 4, 16, 50, 4
 CFG = dqn.DQNConfig(hidden=32, epsilon_steps=100, learning_starts=64)
@@ -85,7 +85,7 @@ def test_quantile_target_and_loss_by_hand():
 
 def test_gnn_ignores_inactive_slots():
     """Whatever an inactive slot holds, the active nodes' Q-values do not change."""
-    from evojax_morph.gnn import TreeGNN, node_features
+    from evojax_morph.agents.gnn import TreeGNN, node_features
 
     space = em.make_space("constructor")
     m = space.mutate(space.mutate(space.initial(), 0, 4), 0, 1)  # 3 active nodes of 9

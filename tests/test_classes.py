@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import evojax_morph as em
-from evojax_morph import classes
 from evojax_morph.fitnesses import FitnessConfig, standard_ppo
-from evojax_morph.locomotion import make_task
+from evojax_morph.physics import classes
+from evojax_morph.tasks import make_task
 
 # Bodies of 8 mutations of the default Constructor: 25% fit its smallest class (docs: SHARES).
 NUM_BODIES, STEPS = 16, 100

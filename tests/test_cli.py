@@ -18,8 +18,9 @@ import pytest
 from conftest import DAMAGES, data_files, flip
 
 import evojax_morph as em
-from evojax_morph import driver, engines, run, warmup
-from evojax_morph.checkpoints import (
+from evojax_morph.physics import engines
+from evojax_morph.run import cli, compile_ahead, driver
+from evojax_morph.run.checkpoints import (
     DAMAGED,
     FINITE,
     Damaged,
@@ -30,7 +31,7 @@ from evojax_morph.checkpoints import (
     restore_checked,
     restore_newest,
 )
-from evojax_morph.pipeline import RunConfig, build
+from evojax_morph.run.pipeline import RunConfig, build
 
 TINY = [
     "--space",
@@ -70,7 +71,7 @@ TINY = [
 )
 def test_bad_input_exits_with_2(args, message, capsys, tmp_path):
     with pytest.raises(SystemExit) as e:
-        run.main(args + ["--out", str(tmp_path / "run")])
+        cli.main(args + ["--out", str(tmp_path / "run")])
     assert e.value.code == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "run").exists()  # nothing half-written
@@ -80,10 +81,10 @@ def test_unwritable_out_and_missing_resume(capsys, tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("")
     with pytest.raises(SystemExit) as e:
-        run.main(TINY + ["--out", str(blocker / "run")])
+        cli.main(TINY + ["--out", str(blocker / "run")])
     assert e.value.code == 2 and "cannot write to --out" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:
-        run.main(TINY + ["--out", str(tmp_path / "empty"), "--resume"])
+        cli.main(TINY + ["--out", str(tmp_path / "empty"), "--resume"])
     assert e.value.code == 2 and "no run in" in capsys.readouterr().err
 
 
@@ -94,7 +95,7 @@ def test_physics_that_cannot_run_exits_with_2(monkeypatch, capsys, tmp_path):
     monkeypatch.setitem(engines._REGISTRY, "warp", cannot)
     out = tmp_path / "run"
     with pytest.raises(SystemExit) as e:
-        run.main(["--space", "bad_walker", "--physics", "warp", "--out", str(out)])
+        cli.main(["--space", "bad_walker", "--physics", "warp", "--out", str(out)])
     assert e.value.code == 2
     assert "the warp physics cannot run here: warp-lang is not installed" in capsys.readouterr().err
     assert not out.exists()
@@ -114,7 +115,7 @@ def straight(tmp_path_factory):
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(driver, "confirm", no_call)
-        assert run.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)]) == 0
+        assert cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)]) == 0
     return out
 
 
@@ -130,11 +131,11 @@ def test_confirm_is_a_no_op_on_a_deterministic_fitness(straight):
 def test_resume_matches_an_uninterrupted_run(tmp_path, straight):
     split = tmp_path / "split"
     assert (
-        run.main(TINY + ["--steps", "3", "--seed", "3", "--out", str(split)]) == 0
+        cli.main(TINY + ["--steps", "3", "--seed", "3", "--out", str(split)]) == 0
     )  # "interrupted"
     with pytest.raises(SystemExit):  # a second start in the same directory must say --resume
-        run.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(split)])
-    assert run.main(TINY + ["--steps", "9", "--out", str(split), "--resume"]) == 0
+        cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(split)])
+    assert cli.main(TINY + ["--steps", "9", "--out", str(split), "--resume"]) == 0
     a, b = (json.loads((d / "summary.json").read_text()) for d in (straight, split))
     assert a == b
     # timing.json: this call's clock; the resumed call ran steps 4-9 in two chunks of 3
@@ -169,7 +170,7 @@ def test_resume_past_a_damaged_checkpoint(tmp_path, straight, capsys):
     keeps it aside, cuts metrics and the body log back, and ends as an uninterrupted run. Every
     checkpoint damaged: exit 2 with the reasons, the directory as it was."""
     split = tmp_path / "split"
-    assert run.main(TINY + ["--steps", "6", "--seed", "3", "--out", str(split)]) == 0
+    assert cli.main(TINY + ["--steps", "6", "--seed", "3", "--out", str(split)]) == 0
     checkpoints = split / "checkpoints"
     assert sorted(int(d.name) for d in checkpoints.iterdir()) == [3, 6]
     damage = lambda checkpoint: [flip(f) for f in data_files(checkpoint)  # noqa: E731
@@ -182,14 +183,14 @@ def test_resume_past_a_damaged_checkpoint(tmp_path, straight, capsys):
     before = _snapshot(none)
     capsys.readouterr()
     with pytest.raises(SystemExit) as e:
-        run.main(TINY + ["--steps", "9", "--out", str(none), "--resume"])
+        cli.main(TINY + ["--steps", "9", "--out", str(none), "--resume"])
     err = capsys.readouterr().err
     assert e.value.code == 2 and "no checkpoint of" in err
     assert "step 6: Damaged: .learner" in err and "step 3: Damaged: .learner" in err
     assert _snapshot(none) == before  # nothing deleted, moved or rewritten
 
     damaged = _snapshot(checkpoints / "6")
-    assert run.main(TINY + ["--steps", "9", "--out", str(split), "--resume"]) == 0
+    assert cli.main(TINY + ["--steps", "9", "--out", str(split), "--resume"]) == 0
     printed = capsys.readouterr().out
     assert "checkpoint 6 is damaged, skipped (Damaged: .learner" in printed
     assert "its SHA-256 is not the saved one)" in printed
@@ -325,7 +326,7 @@ def test_body_log_of_a_run(straight):
 def _by_thread(records, done: str) -> collections.Counter:
     """(on the warmup thread, program name) -> how many of `records` begin with `done`."""
     return collections.Counter(
-        (r.threadName.startswith(warmup.THREAD), r.getMessage()[len(done):].split(" in ")[0])
+        (r.threadName.startswith(compile_ahead.THREAD), r.getMessage()[len(done):].split(" in ")[0])
         for r in records if r.getMessage().startswith(done)
     )
 
@@ -345,7 +346,7 @@ def test_a_run_compiles_its_later_programs_ahead(tmp_path, caplog):
     jax.config.update("jax_log_compiles", True)  # in every thread (`jax.log_compiles` in this)
     try:
         with caplog.at_level(logging.WARNING, logger="jax"):
-            assert run.main(args) == 0
+            assert cli.main(args) == 0
     finally:
         jax.config.update("jax_log_compiles", False)
     later = ["jit(chunk)", "jit(run)", "jit(evaluate)"]  # run: the greedy rollout's program
@@ -364,7 +365,7 @@ def test_with_warp_on_a_gpu_the_warmup_thread_only_lowers(caplog):
         return jnp.sin(x) * 3.0 + 1.0
 
     f, x = jax.jit(warmup_probe), jnp.arange(7.0)
-    ahead = warmup.Warmup(on=True, compiles=False)
+    ahead = compile_ahead.Warmup(on=True, compiles=False)
     jax.config.update("jax_log_compiles", True)
     try:
         with caplog.at_level(logging.WARNING, logger="jax"):
@@ -383,7 +384,7 @@ def test_a_warmup_closed_on_an_error_lowers_nothing_more():
     """`close(wait=False)` (a run that failed) drops the jobs: the one already waiting for
     `start` on the thread returns without lowering, the others are cancelled."""
     called = []
-    ahead = warmup.Warmup(on=True)
+    ahead = compile_ahead.Warmup(on=True)
     for name in "ab":
         ahead.compile(name, lambda name=name: called.append(name))
     jobs = list(ahead._jobs.values())
@@ -403,8 +404,8 @@ def test_a_failed_warmup_job_only_warns(compiles):
             raise RuntimeError("no program")
 
     before = sys.getswitchinterval()
-    ahead = warmup.Warmup(on=True, compiles=compiles)
-    assert sys.getswitchinterval() == pytest.approx(warmup.SWITCH_INTERVAL)
+    ahead = compile_ahead.Warmup(on=True, compiles=compiles)
+    assert sys.getswitchinterval() == pytest.approx(compile_ahead.SWITCH_INTERVAL)
     ahead.compile("lower", lambda: 1 / 0)
     ahead.compile("compile", lambda: [Unlowerable()])
     for name, why in (("lower", "ZeroDivisionError"), ("compile", "RuntimeError: no program")):

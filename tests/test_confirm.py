@@ -12,10 +12,10 @@ import scipy.stats
 from conftest import truncate
 
 import evojax_morph as em
-from evojax_morph import bodylog, driver, run
-from evojax_morph.checkpoints import Damaged
 from evojax_morph.fitnesses import table as tb
-from evojax_morph.pipeline import RunConfig
+from evojax_morph.run import bodylog, cli, driver
+from evojax_morph.run.checkpoints import Damaged
+from evojax_morph.run.pipeline import RunConfig
 
 S = 8  # results a body in the tables here
 STEADY, LUCKY, UNLUCKY = 350.0, 400.0, -1000.0
@@ -49,7 +49,7 @@ def planted(walker, tmp_path_factory):
     args = ["--space", "bad_walker", "--fitness", "table", "--table", str(path), "--agent",
             "random", "--num-envs", "4", "--steps", "4", "--chunk", "2", "--seed", "1",
             "--confirm", "8", "--confirm-controllers", "8", "--out", str(out)]
-    assert run.main(args) == 0
+    assert cli.main(args) == 0
     return out, args
 
 
@@ -84,7 +84,7 @@ def test_resume_of_a_finished_run_does_not_confirm_again(planted, tmp_path, monk
         raise AssertionError("confirmed again")
 
     monkeypatch.setattr(driver, "confirm", no_call)
-    assert run.main(["--out", str(again), "--resume", "--steps", "4"]) == 0
+    assert cli.main(["--out", str(again), "--resume", "--steps", "4"]) == 0
     for name in ("summary.json", "confirmed.json"):
         assert (again / name).read_text() == (out / name).read_text()
 
@@ -93,7 +93,7 @@ def test_resume_of_a_finished_run_does_not_confirm_again(planted, tmp_path, monk
     record["confirmed"][0]["mean"] += 1.0
     (again / "confirmed.json").write_text(json.dumps(record))
     with pytest.raises(SystemExit) as e:
-        run.main(["--out", str(again), "--resume", "--steps", "4"])
+        cli.main(["--out", str(again), "--resume", "--steps", "4"])
     assert e.value.code == 2
     assert "confirmed.json is damaged: its SHA-256 is not the saved one" in capsys.readouterr().err
     truncate(again / "confirmed.json")

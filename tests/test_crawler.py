@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import evojax_morph as em
-from evojax_morph.locomotion import Body, Locomotion, make_task
 from evojax_morph.spaces import crawler as cr
+from evojax_morph.tasks import Body, Locomotion, make_task
 
 
 @pytest.fixture(scope="module")

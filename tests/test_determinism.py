@@ -8,7 +8,7 @@ import sys
 PROBE = r"""
 import os, sys
 import jax
-from evojax_morph.determinism import FLAG, deterministic_gpu
+from evojax_morph.physics.determinism import FLAG, deterministic_gpu
 if sys.argv[1] == "late":
     jax.devices()  # a backend is up: too late to change XLA's flags
 ok = deterministic_gpu()
@@ -38,7 +38,8 @@ def test_switch_before_the_backend_starts_and_refused_after():
 def test_run_asks_for_deterministic_ops_unless_the_ppo_fitness_may_step_on_warp(
     tmp_path, monkeypatch
 ):
-    from evojax_morph import engines, run
+    from evojax_morph.physics import engines
+    from evojax_morph.run import cli
 
     asked = []
     monkeypatch.setattr(run, "deterministic_gpu", lambda: asked.append(True))
@@ -46,7 +47,7 @@ def test_run_asks_for_deterministic_ops_unless_the_ppo_fitness_may_step_on_warp(
 
     def asks(*argv) -> bool:
         asked.clear()
-        run.start_deterministic(list(argv))
+        cli.start_deterministic(list(argv))
         return bool(asked)
 
     assert asks("--physics", "jax")
@@ -71,7 +72,8 @@ import matplotlib
 matplotlib.use(sys.argv[1])  # the importer's choice, which evojax_morph must keep
 b = matplotlib.get_backend(); f = os.environ.get("XLA_FLAGS")
 import evojax_morph
-from evojax_morph import plots, report  # every figure's module, and one figure drawn
+from evojax_morph.run import plots  # every figure's module, and one figure drawn
+from evojax_morph.run import report
 plots.plot_curve(sys.argv[2], [0, 1, 2], [1, 2, 3], [0, 1, 2], [2, 3, 4])
 print(json.dumps([b, matplotlib.get_backend(), f, os.environ.get("XLA_FLAGS")]))
 """
@@ -81,7 +83,7 @@ def test_import_leaves_matplotlib_and_xla_flags_as_they_were(tmp_path):
     """`import evojax_morph` (and a figure drawn) keeps the importer's matplotlib backend, and
     XLA_FLAGS as they were but for the CPU scheduler flag (`cpu_scheduler_workaround`, said in
     evojax_morph/__init__.py), appended only where XLA_FLAGS does not set that scheduler."""
-    from evojax_morph.determinism import CPU_FLAG
+    from evojax_morph.physics.determinism import CPU_FLAG
 
     def imported(xla_flags: str | None) -> list:
         env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "MPLBACKEND")}

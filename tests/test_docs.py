@@ -79,8 +79,8 @@ def test_every_exported_name_is_in_the_api_reference():
     shown = set()
     for page in (ROOT / "docs" / "api").glob("*.md"):
         shown |= set(re.findall(r"^::: ([\w.]+)", page.read_text(), flags=re.M))
-    lazy = {"GymEvolutionEnv": "evojax_morph.gym_env.GymEvolutionEnv",
-            "SB3EvolutionEnv": "evojax_morph.sb3_env.SB3EvolutionEnv"}
+    lazy = {"GymEvolutionEnv": "evojax_morph.envs.gym_env.GymEvolutionEnv",
+            "SB3EvolutionEnv": "evojax_morph.envs.sb3_env.SB3EvolutionEnv"}
     paths = {name: f"{getattr(em, name).__module__}.{getattr(em, name).__qualname__}"
              for name in em.__all__}
     missing = sorted(name for name, path in {**paths, **lazy}.items() if path not in shown)

@@ -5,7 +5,8 @@ import ast
 from pathlib import Path
 
 import evojax_morph as em
-from evojax_morph import agents, engines
+from evojax_morph import agents
+from evojax_morph.physics import engines
 
 PACKAGE = Path(em.__file__).parent
 # Where each kind's names may be compared: its own modules and its registry.

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import evojax_morph as em
-from evojax_morph.physics import mjx
+from evojax_morph.physics.templates import mjx
 from evojax_morph.spaces import bad_walker as bw
 
 # The documented equivalence: 50 bodies x 300 steps per space (slow: minutes of float64

@@ -22,9 +22,11 @@ from conftest import DAMAGES, data_files
 from PIL import Image
 
 import evojax_morph as em
-from evojax_morph import bodylog, controllers, driver, opengl, ppo, render, video
-from evojax_morph.checkpoints import Damaged
-from evojax_morph.pipeline import Greedy, RunConfig, build
+from evojax_morph import ppo, render
+from evojax_morph.physics import opengl
+from evojax_morph.run import bodylog, driver, saved_controllers, video
+from evojax_morph.run.checkpoints import Damaged
+from evojax_morph.run.pipeline import Greedy, RunConfig, build
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_VIDEO = dict(backend="matplotlib", width=64, height=48, stride=50)
@@ -73,7 +75,7 @@ def test_one_ppo_update_moves_every_controller(run_dir):
 
 def test_saved_controllers_round_trip(run_dir):
     out, p, params, fitness = run_dir
-    best = em.load_controller(controllers.body_dir(out, "best"))
+    best = em.load_controller(saved_controllers.body_dir(out, "best"))
     assert best.label == "best" and best.seed == 7 and best.fitness == p.fitness
     assert best.value == pytest.approx(fitness[1]) and best.space.name == "bad_walker"
     assert best.space.canonical(best.morph) == p.space.canonical(p.space.optimum())
@@ -81,13 +83,13 @@ def test_saved_controllers_round_trip(run_dir):
     assert leaves[0].shape[0] == 2  # both controllers
     for saved, original in zip(leaves, jax.tree.leaves(params[1])):
         np.testing.assert_array_equal(saved, original)
-    assert controllers.body_dir(out, "final") == controllers.body_dir(out, "step 1")
-    m0 = em.load_controller(controllers.body_dir(out, "step 0"))
+    assert saved_controllers.body_dir(out, "final") == saved_controllers.body_dir(out, "step 1")
+    m0 = em.load_controller(saved_controllers.body_dir(out, "step 0"))
     assert m0.space.canonical(m0.morph) == p.space.canonical(p.space.initial())
     with pytest.raises(ValueError, match="unknown body"):
-        controllers.body_dir(out, "worst")
+        saved_controllers.body_dir(out, "worst")
     with pytest.raises(FileNotFoundError, match="saved steps: 0, 1"):
-        controllers.body_dir(out, "step 5")
+        saved_controllers.body_dir(out, "step 5")
 
 
 def test_a_damaged_controller_is_an_error(run_dir, tmp_path, capsys):
@@ -97,16 +99,16 @@ def test_a_damaged_controller_is_an_error(run_dir, tmp_path, capsys):
     loads the controller saved, bit for bit. A controller saved without digests (before they
     were kept) or holding a NaN is damaged too."""
     out, p, *_ = run_dir
-    saved = em.load_controller(out / controllers.DIR / "step0")
+    saved = em.load_controller(out / saved_controllers.DIR / "step0")
     caught = []
-    for i, f in enumerate(data_files(out / controllers.DIR / "step0")):
+    for i, f in enumerate(data_files(out / saved_controllers.DIR / "step0")):
         for damage in DAMAGES:
             run = tmp_path / f"{i}{damage.__name__}"
-            shutil.copytree(out / controllers.DIR / "step0", run / controllers.DIR / "step0")
+            shutil.copytree(out / saved_controllers.DIR / "step0", run / saved_controllers.DIR / "step0")
             damage(run / f.relative_to(out))
             said = f"saved controller {run / controllers.DIR / 'step0'} "
             try:
-                loaded = em.load_controller(run / controllers.DIR / "step0")
+                loaded = em.load_controller(run / saved_controllers.DIR / "step0")
             except Damaged as e:  # (which array fails first may differ from one read to the next)
                 assert str(e).startswith(said)
                 with pytest.raises(SystemExit) as code:
@@ -120,13 +122,13 @@ def test_a_damaged_controller_is_an_error(run_dir, tmp_path, capsys):
     assert [c for c in caught if c.endswith(": its SHA-256 is not the saved one")], caught
 
     meta = tmp_path / "old" / "meta" / "metadata"  # saved before controllers had digests
-    shutil.copytree(out / controllers.DIR / "step0", tmp_path / "old")
+    shutil.copytree(out / saved_controllers.DIR / "step0", tmp_path / "old")
     meta.write_text(json.dumps({k: v for k, v in json.loads(meta.read_text()).items()
                                 if k not in ("sha256", "params")}))
     with pytest.raises(Damaged, match="is damaged: metadata: no digest saved"):
         em.load_controller(tmp_path / "old")
     nan = jax.tree.map(lambda x: x * np.nan, saved.params)
-    controllers.save(tmp_path / "nan", dataclasses.replace(saved, params=nan))
+    saved_controllers.save(tmp_path / "nan", dataclasses.replace(saved, params=nan))
     with pytest.raises(Damaged, match=r"is damaged: \.normalizer\.mean: non-finite values where"):
         em.load_controller(tmp_path / "nan")
 
@@ -152,7 +154,7 @@ def test_confirmed_best_keeps_its_fresh_controllers(run_dir, tmp_path):
     best, fitness, params, best_cfg = driver.reported_best(tmp_path, p, record, top, None)
     assert best_cfg.ppo.controllers == 2 and fitness == top.mean
     driver.save_controllers(tmp_path, p, 7, best, fitness, params, None, best_cfg)
-    kept = em.load_controller(controllers.body_dir(tmp_path, "best"))
+    kept = em.load_controller(saved_controllers.body_dir(tmp_path, "best"))
     assert kept.fitness.ppo.controllers == 2 and kept.value == top.mean
     order = np.argsort(-top.values, kind="stable")  # controller 0 the best, for best.gif
     for saved, trained in zip(jax.tree.leaves(kept.params), jax.tree.leaves(top.params)):
@@ -169,7 +171,7 @@ def test_replay_is_the_fitness_evaluation_episode(run_dir):
     """The replay of controller k from reset key r returns what the PPO fitness's evaluation
     (`ppo.make_evaluate`, which scores every trained controller) returns for the same key."""
     out, p, _, _ = run_dir
-    saved = em.load_controller(controllers.body_dir(out, "best"))
+    saved = em.load_controller(saved_controllers.body_dir(out, "best"))
     cfg = dataclasses.replace(saved.fitness.ppo, eval_episodes=1)
     evaluate = jax.jit(ppo.make_evaluate(saved.space, saved.fitness.task, cfg))
     model = saved.space.mjx_model(saved.morph)
@@ -195,7 +197,7 @@ def test_replay_compiles_ahead(run_dir, monkeypatch, caplog):
     with jax.log_compiles(True), caplog.at_level(logging.WARNING, logger="jax"):
         video.lower_replay(p.space, p.fitness).compile()
         ahead = len(caplog.records)
-        em.replay(em.load_controller(controllers.body_dir(out, "best")), controller=1)
+        em.replay(em.load_controller(saved_controllers.body_dir(out, "best")), controller=1)
     episode = [i for i, r in enumerate(caplog.records)
                if r.getMessage().startswith("Compiling jit(episode)")]
     assert len(episode) == 1 and episode[0] < ahead

@@ -17,7 +17,7 @@ import evojax_morph as em
 from evojax_morph import agents
 from evojax_morph.agents import a2c, baselines
 from evojax_morph.fitnesses import table as tb
-from evojax_morph.pipeline import RunConfig, build
+from evojax_morph.run.pipeline import RunConfig, build
 
 ROOT = Path(__file__).resolve().parents[1]
 

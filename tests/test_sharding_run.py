@@ -8,16 +8,14 @@ import numpy as np
 import pytest
 from conftest import on_four_devices
 
-from evojax_morph import run
-
 RUN_ON_FOUR = r"""
 import sys
 import jax
-from evojax_morph import run
+from evojax_morph.run import cli
 
 assert jax.device_count() == 4
 # the greedy rollout, one body a call, compiles for one device (split, it hung on 2 GPUs)
-from evojax_morph.pipeline import RunConfig, build, make_greedy_rollout
+from evojax_morph.run.pipeline import RunConfig, build, make_greedy_rollout
 from evojax_morph.sharding import batch_mesh, replicated
 p = build(RunConfig(space="bad_walker", fitness="predefined", num_envs=4, horizon=2))
 everywhere = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=replicated(batch_mesh()))
@@ -72,7 +70,7 @@ def test_a_run_on_four_devices_resumes_on_one(tmp_path):
     mujoco.MjModel.from_xml_string((out / "best.xml").read_text())  # the export loads
     assert not (out / "best.gif").exists()  # --no-gif
     before = (out / "metrics.csv").read_text().splitlines()
-    assert run.main(["--out", str(out), "--resume", "--steps", "3", "--no-gif"]) == 0
+    assert cli.main(["--out", str(out), "--resume", "--steps", "3", "--no-gif"]) == 0
     after = (out / "metrics.csv").read_text().splitlines()
     assert after[:3] == before and len(after) == 4  # steps 1-2 kept, step 3 added
     summary = json.loads((out / "summary.json").read_text())

@@ -13,9 +13,9 @@ import pytest
 from test_spaces import reachable_batched
 
 import evojax_morph as em
-from evojax_morph import run
 from evojax_morph.fitnesses import get_fitness
 from evojax_morph.fitnesses import table as tb
+from evojax_morph.run import cli
 from experiments import build_tables
 
 SEEDS = 6  # results per body of the synthetic table
@@ -201,7 +201,7 @@ def test_an_agent_runs_on_the_table(walker, tmp_path):
     agent: a table fitness program is compiled afresh every run (its host callback keeps it
     out of the compilation cache), and a learning agent's would cost 20 s more; every agent's
     own loop is test_agent's."""
-    from evojax_morph.pipeline import RunConfig, build
+    from evojax_morph.run.pipeline import RunConfig, build
 
     space, _, names = walker
     table = synthetic(walker, tmp_path / "t.npz")
@@ -271,12 +271,12 @@ def test_run_command_with_the_table(walker, tmp_path):
     args = ["--space", "bad_walker", "--fitness", "table", "--table", str(tmp_path / "t.npz"),
             "--agent", "qrdqn", "--num-envs", "4", "--steps", "4", "--chunk", "2",
             "--learning-starts", "4", "--out", str(out)]
-    assert run.main(args) == 0
+    assert cli.main(args) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["best_fitness"] >= 1000 and summary["controllers"] == []
     assert json.loads((out / "config.json").read_text())["table"] == str(tmp_path / "t.npz")
     with pytest.raises(SystemExit) as e:
-        run.main(args[:4] + ["--table", str(tmp_path / "none.npz"), "--out", str(tmp_path / "x")])
+        cli.main(args[:4] + ["--table", str(tmp_path / "none.npz"), "--out", str(tmp_path / "x")])
     assert e.value.code == 2
 
 

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import evojax_morph as em
-from evojax_morph import run, tame
+from evojax_morph import tame
+from evojax_morph.run import cli
 from evojax_morph.tame import __main__ as tame_cli
 
 TINY = [
@@ -153,10 +154,10 @@ def test_fitness_is_deterministic_and_batch_independent(trained):
 def test_cli_refuses_the_tame_fitness_without_its_classifier(trained, tmp_path, capsys):
     out, _ = trained
     with pytest.raises(SystemExit):
-        run.main(["--fitness", "tame", "--out", str(tmp_path / "none")])
+        cli.main(["--fitness", "tame", "--out", str(tmp_path / "none")])
     assert "needs --classifier" in capsys.readouterr().err
     with pytest.raises(SystemExit):
-        run.main(
+        cli.main(
             [
                 "--space",
                 "constructor",
@@ -175,7 +176,7 @@ def test_cli_refuses_the_tame_fitness_without_its_classifier(trained, tmp_path, 
 def test_cli_runs_with_the_tame_fitness(trained, tmp_path):
     out, _ = trained
     assert (
-        run.main(
+        cli.main(
             [
                 "--fitness",
                 "tame",

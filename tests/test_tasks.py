@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import evojax_morph as em
-from evojax_morph.physics import mjx
+from evojax_morph.physics.templates import mjx
 
 
 def test_tasks_are_registered_by_name():

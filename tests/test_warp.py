@@ -22,9 +22,9 @@ import pytest
 from mujoco.mjx import warp as mjx_warp
 
 import evojax_morph as em
-from evojax_morph import physics
-from evojax_morph import warp as ew
-from evojax_morph.physics import mjx
+from evojax_morph.physics import templates
+from evojax_morph.physics import warp as ew
+from evojax_morph.physics.templates import mjx
 from evojax_morph.spaces import crawler as cr
 
 BODIES, ENVS, STEPS = 3, 2, 5
@@ -100,7 +100,7 @@ def test_specialise_writes_only_the_listed_fields(space):
         for path, leaf, orig in zip(paths, leaves, jax.tree.leaves(template))
         if not np.array_equal(np.asarray(leaf), np.broadcast_to(orig, leaf.shape))
     }
-    listed = {f".{name}" for name in physics.SPECIALISED_FIELDS} | {".stat.meaninertia"}
+    listed = {f".{name}" for name in templates.SPECIALISED_FIELDS} | {".stat.meaninertia"}
     assert changed <= listed, changed - listed
 
 
@@ -125,7 +125,7 @@ def test_flat_jax_batch_equals_nested():
     ctrl = _controls(space)
     expected = _nested_jax(space, models, ctrl)
 
-    flat, axes = physics.flat_models(models, ENVS)
+    flat, axes = templates.flat_models(models, ENVS)
     data = jax.vmap(lambda _: mjx.make_data(space.mjx_template()))(jnp.arange(BODIES * ENVS))
     step = jax.vmap(mjx.step, (axes, 0))
 
@@ -396,7 +396,8 @@ def test_ppo_fitness_on_warp():
 DETERMINISM_CHECK = """
 import jax, numpy as np
 import evojax_morph as em
-from evojax_morph import physics, warp as ew
+from evojax_morph.physics import templates
+from evojax_morph.physics import warp as ew
 from mujoco_warp._src import collision_driver
 assert physics.MUJOCO_WARP == "package", physics.MUJOCO_WARP
 sorts, sort = [], collision_driver._sort_contacts
@@ -432,7 +433,7 @@ def test_set_deterministic_reaches_mujoco_warp():
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert float(proc.stdout.split("DIFF")[1]) < WARP_TOL
-    if physics.MUJOCO_WARP == "vendored":  # the default: the option is refused, not ignored
+    if templates.MUJOCO_WARP == "vendored":  # the default: the option is refused, not ignored
         assert not ew.set_deterministic(True) and not ew.deterministic()
 
 
@@ -454,14 +455,14 @@ four = em.evaluate(space, morphs, keys, cfg)
 one = em.evaluate(space, morphs, keys, cfg, mesh=batch_mesh(jax.devices()[:1]))
 devices = {d.id for d in four.params.policy["params"]["hidden_0"]["kernel"].sharding.device_set}
 # the leading axes of what Warp's calls return in the 4-device program: the worlds they step
-from evojax_morph.fitness import lower_evaluate
+from evojax_morph.fitnesses.batched import lower_evaluate
 text = lower_evaluate(space, 6, cfg)[-1].as_text()
 calls = [line.split("->")[-1] for line in text.splitlines() if "custom_call @jax_callable" in line]
 worlds = sorted({int(n) for call in calls for n in re.findall(r"tensor<(\d+)x", call)})
 # the agents' loop around it (m0, one Double-DQN step): GSPMD failed to compile it under jax
 # 0.10, jax 0.11 hung it on 2 GPUs; it has to compile and run, not only `evaluate`
 from evojax_morph.agents import dqn
-from evojax_morph.pipeline import RunConfig, build
+from evojax_morph.run.pipeline import RunConfig, build
 run = RunConfig(space="bad_walker", agent="ddqn", num_envs=4, horizon=2, train_steps=320,
                 physics="warp")
 init, chunk, _ = build(run, batch_mesh(), dqn.DQNConfig(learning_starts=0)).agent

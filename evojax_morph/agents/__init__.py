@@ -20,7 +20,7 @@ from typing import Any, NamedTuple
 
 from evojax_morph.agents import a2c, baselines, dqn, qrdqn
 from evojax_morph.agents.base import Agent, AgentState, Policy, RunOptions, Transition, from_policy
-from evojax_morph.evolution import EvolutionEnv
+from evojax_morph.mdp import EvolutionEnv
 
 
 class AgentKind(NamedTuple):

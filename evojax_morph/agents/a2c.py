@@ -23,8 +23,8 @@ from brax.training.agents.ppo import losses as ppo_losses
 from flax import struct
 
 from evojax_morph.agents.base import Policy, RunOptions, Transition
-from evojax_morph.evolution import NEG, EvolutionEnv, Observation
-from evojax_morph.gnn import TreeGNN, node_features
+from evojax_morph.agents.gnn import TreeGNN, node_features
+from evojax_morph.mdp import NEG, EvolutionEnv, Observation
 
 
 @dataclasses.dataclass(frozen=True)

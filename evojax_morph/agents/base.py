@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from evojax_morph.evolution import EvolutionEnv, EvoState, Observation, track_best
+from evojax_morph.mdp import EvolutionEnv, EvoState, Observation, track_best
 from evojax_morph.morphology import Morphology
 from evojax_morph.sharding import jit_replicated
 

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from evojax_morph.agents.base import Policy, RunOptions
-from evojax_morph.evolution import REMEASURE, EvolutionEnv, EvoState, random_valid_actions
+from evojax_morph.mdp import REMEASURE, EvolutionEnv, EvoState, random_valid_actions
 
 
 def _random_act(learner, keys, obs, step):

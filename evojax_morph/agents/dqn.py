@@ -20,8 +20,8 @@ import optax
 from flax import struct
 
 from evojax_morph.agents.base import Policy, RunOptions, Transition
-from evojax_morph.evolution import EvolutionEnv, Observation, masked_argmax, random_valid_actions
-from evojax_morph.gnn import TreeGNN, node_features
+from evojax_morph.agents.gnn import TreeGNN, node_features
+from evojax_morph.mdp import EvolutionEnv, Observation, masked_argmax, random_valid_actions
 
 
 @dataclasses.dataclass(frozen=True)

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 
 from evojax_morph.agents import dqn
 from evojax_morph.agents.base import Policy
-from evojax_morph.evolution import EvolutionEnv, masked_argmax
+from evojax_morph.mdp import EvolutionEnv, masked_argmax
 
 
 @dataclasses.dataclass(frozen=True)

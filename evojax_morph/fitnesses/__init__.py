@@ -1,4 +1,4 @@
-"""Fitness kinds, registered by name; `evojax_morph.fitness` evaluates any of them.
+"""Fitness kinds, registered by name; `evojax_morph.fitnesses.batched` evaluates any of them.
 
 To add a kind: write a module of this package defining its `make(space, cfg) -> (init,
 evaluate)`, its settings check and its typical scale as a `Fitness`, with its rules (the

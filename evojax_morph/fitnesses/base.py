@@ -10,10 +10,10 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from evojax_morph.engines import AUTO, list_engines, resolve
-from evojax_morph.locomotion import TaskConfig
+from evojax_morph.physics.engines import AUTO, list_engines, resolve
 from evojax_morph.ppo import Params, PPOConfig
 from evojax_morph.spaces import Space
+from evojax_morph.tasks import TaskConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,11 +31,11 @@ class FitnessConfig:
     ppo: the inner PPO's settings and budget.
     classifier: for "tame", the directory of a classifier saved by `python -m evojax_morph.tame`.
     physics: the engine that steps the worlds of the kinds that simulate ("jax" or "warp",
-      `evojax_morph.engines`; the CLI resolves its "auto" before it gets here).
+      `evojax_morph.physics.engines`; the CLI resolves its "auto" before it gets here).
     table: for "table", the .npz of a table built by `python -m experiments.build_tables`;
-      "" for the space's packaged table (`evojax_morph/tables/SPACE.npz`).
+      "" for the space's packaged table (`evojax_morph/fitnesses/tables/SPACE.npz`).
     classes: for "ppo", train each body on the smallest of the space's size classes that holds
-      it (`evojax_morph.classes`; spaces without classes ignore it).
+      it (`evojax_morph.physics.classes`; spaces without classes ignore it).
     """
 
     kind: str = "ppo"

@@ -3,15 +3,16 @@
 Training starts from the controller it is given (a parent's: policy inheritance); the fitness is
 the mean return of the deterministic evaluation episodes after training (`evojax_morph.ppo`).
 Every world of a fitness call (bodies x controllers x envs) steps as one flat batch on the engine
-`FitnessConfig.physics` names (`evojax_morph.engines`).
+`FitnessConfig.physics` names (`evojax_morph.physics.engines`).
 """
 
 from __future__ import annotations
 
 import jax
 
-from evojax_morph import classes, ppo
+from evojax_morph import ppo
 from evojax_morph.fitnesses.base import Fitness, FitnessConfig, FitnessResult
+from evojax_morph.physics import classes
 from evojax_morph.spaces import Space
 
 

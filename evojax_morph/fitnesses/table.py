@@ -15,7 +15,7 @@ further. Under the PPO fitness a lineage's fitness rises with training alone; he
 so rewards are differences of independent draws, and a body's value is its table mean.
 
 Tables are built by `python -m experiments.build_tables` (see there) and live in
-`evojax_morph/tables/SPACE.npz` unless `FitnessConfig.table` names another file.
+`evojax_morph/fitnesses/tables/SPACE.npz` unless `FitnessConfig.table` names another file.
 """
 
 from __future__ import annotations

@@ -7,8 +7,8 @@ import functools
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_morph import physics
 from evojax_morph.morphology import Morphology
+from evojax_morph.physics import templates
 from evojax_morph.spaces.base import Space
 
 TRUNK_LENGTH = 1.0
@@ -94,9 +94,9 @@ class BadWalker(Space):
         )
 
     @functools.cached_property
-    def plan(self) -> physics.BodyPlan:
+    def plan(self) -> templates.BodyPlan:
         trunk, foot = (0.35, 0.55, 0.8, 1.0), (0.85, 0.5, 0.2, 1.0)
-        return physics.BodyPlan(
+        return templates.BodyPlan(
             geom_names=("geom0", "geom1", "geom2", "geom3"),
             geom_body=(0, 1, 2, 3),
             geom_rgba=(trunk, foot, foot, foot),
@@ -106,13 +106,13 @@ class BadWalker(Space):
             gear=30.0,
         )
 
-    def layout(self, m: Morphology) -> physics.Layout:
+    def layout(self, m: Morphology) -> templates.Layout:
         length = m.attrs[:, 0]
         x = jnp.asarray(SITE_X)[m.site[1:]]
         zeros = jnp.zeros(3)
         feet_to = jnp.stack([jnp.zeros(3), jnp.zeros(3), -length[1:]], -1)
         half = TRUNK_LENGTH / 2
-        layout = physics.Layout(
+        layout = templates.Layout(
             root_pos=zeros,
             limb_active=m.active[1:],
             limb_pos=jnp.stack([x, jnp.zeros(3), jnp.zeros(3)], -1),
@@ -121,5 +121,5 @@ class BadWalker(Space):
             geom_to=jnp.concatenate([jnp.array([[half, 0.0, 0.0]]), feet_to]),
             geom_radius=jnp.array([TRUNK_RADIUS, FOOT_RADIUS, FOOT_RADIUS, FOOT_RADIUS]),
         )
-        height = CLEARANCE - physics.lowest_point(self.plan, layout)
+        height = CLEARANCE - templates.lowest_point(self.plan, layout)
         return layout.replace(root_pos=zeros.at[2].set(height))

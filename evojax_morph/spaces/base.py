@@ -13,9 +13,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from evojax_morph import mjcf, physics
 from evojax_morph.morphology import Morphology, format_tree
-from evojax_morph.physics import mjx
+from evojax_morph.physics import mjcf, templates
+from evojax_morph.physics.templates import mjx
 
 
 class SizeClass(NamedTuple):
@@ -99,11 +99,11 @@ class Space(abc.ABC):
 
     @property
     @abc.abstractmethod
-    def plan(self) -> physics.BodyPlan:
+    def plan(self) -> templates.BodyPlan:
         """Static slots of the padded template."""
 
     @abc.abstractmethod
-    def layout(self, m: Morphology) -> physics.Layout:
+    def layout(self, m: Morphology) -> templates.Layout:
         """Where the capsules of `m` lie; valid geometry for inactive slots too."""
 
     # With size classes: each class's share of a batch, then the full template's (a class left
@@ -112,12 +112,12 @@ class Space(abc.ABC):
 
     @property
     def full_share(self) -> float:
-        """The full template's share of a batch (`evojax_morph.classes`)."""
+        """The full template's share of a batch (`evojax_morph.physics.classes`)."""
         return round(sum(self.SHARES) - sum(share for _, share in self.size_classes()), 6)
 
     def size_classes(self) -> tuple[tuple[SizeClass, float], ...]:
         """Smaller templates for the smaller bodies, smallest first, each with the share of a
-        batch it takes (`evojax_morph.classes`); none by default."""
+        batch it takes (`evojax_morph.physics.classes`); none by default."""
         return ()
 
     # --- shared machinery -----------------------------------------------------------------
@@ -258,8 +258,8 @@ class Space(abc.ABC):
             return mjcf.compile_template(self.plan, full, f"{self.name}_template")
 
     @functools.cached_property
-    def _index(self) -> physics.TemplateIndex:
-        return physics.TemplateIndex.build(self.plan, self.template)
+    def _index(self) -> templates.TemplateIndex:
+        return templates.TemplateIndex.build(self.plan, self.template)
 
     def mjx_template(self) -> mjx.Model:
         """`template` on this process's first device, in float64 when jax_enable_x64 is on.
@@ -276,7 +276,7 @@ class Space(abc.ABC):
 
     def mjx_model(self, m: Morphology) -> mjx.Model:
         """The template specialised to `m`: jit and vmap over `m` compile once for all bodies."""
-        return physics.specialise(self.mjx_template(), self.plan, self._index, self.layout(m))
+        return templates.specialise(self.mjx_template(), self.plan, self._index, self.layout(m))
 
     def to_mjcf(self, m: Morphology) -> str:
         """A standalone MJCF of `m` alone, without padding, named as in the template."""

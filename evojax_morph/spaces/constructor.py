@@ -8,8 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_morph import physics
 from evojax_morph.morphology import Morphology
+from evojax_morph.physics import templates
 from evojax_morph.spaces.base import SizeClass, Space
 
 STICK_LENGTH, EDGE_LENGTH, LEG_LENGTH = 1.0, 0.5, 0.4  # m
@@ -164,7 +164,7 @@ class Constructor(Space):
         self.geom_body = np.array(geom_body)  # (G,)
         self.geom_names = tuple(geom_names)
 
-    # Size classes (`evojax_morph.classes`): legs on the trunk only, then one knee and one edge
+    # Size classes (`evojax_morph.physics.classes`): legs on the trunk only, then one knee and one edge
     # per leg, both with at most 4 legs on the trunk, then the full template. Of 20,000 random
     # 8-mutation bodies of the default space 25.4% fit the first, 73.8% the second (and not the
     # first), 0.8% only the full template; with these shares a batch of 64 to 1,024 such bodies
@@ -276,11 +276,11 @@ class Constructor(Space):
         return 100.0 * (legs - edges).astype(jnp.float32)
 
     @functools.cached_property
-    def plan(self) -> physics.BodyPlan:
+    def plan(self) -> templates.BodyPlan:
         edge, leg, stick = (0.35, 0.55, 0.8, 1.0), (0.85, 0.5, 0.2, 1.0), (0.3, 0.45, 0.7, 1.0)
         is_leg = np.zeros(len(self.geom_body), bool)
         is_leg[self.leg_geom[1:]] = True
-        return physics.BodyPlan(
+        return templates.BodyPlan(
             geom_names=self.geom_names,
             geom_body=tuple(int(b) for b in self.geom_body),
             geom_rgba=tuple(
@@ -295,7 +295,7 @@ class Constructor(Space):
             gear=30.0,
         )
 
-    def layout(self, m: Morphology) -> physics.Layout:
+    def layout(self, m: Morphology) -> templates.Layout:
         n, num_bodies, num_geoms = self.max_nodes, len(self.body_parent), len(self.geom_body)
         body, geom, _, _ = self._assign(m)
         kind = jnp.where(m.active, m.kind, EDGE)
@@ -338,7 +338,7 @@ class Constructor(Space):
         )
         geom_radius = geom_radius.at[slot].set(radius, mode="drop")
         parent_origin = origin[jnp.asarray(self.body_parent[1:])]
-        layout = physics.Layout(
+        layout = templates.Layout(
             root_pos=jnp.zeros(3),
             limb_active=limb_active[1:],
             limb_pos=jnp.where(limb_active[1:, None], origin[1:] - parent_origin, 0.0),
@@ -347,5 +347,5 @@ class Constructor(Space):
             geom_to=geom_to,
             geom_radius=geom_radius,
         )
-        height = CLEARANCE - physics.lowest_point(self.plan, layout)
+        height = CLEARANCE - templates.lowest_point(self.plan, layout)
         return layout.replace(root_pos=jnp.zeros(3).at[2].set(height))

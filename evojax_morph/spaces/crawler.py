@@ -8,8 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_morph import physics
 from evojax_morph.morphology import Morphology
+from evojax_morph.physics import templates
 from evojax_morph.spaces.base import SizeClass, Space
 
 TORSO_HALF, TORSO_RADIUS, LIMB_RADIUS = 0.2, 0.08, 0.04  # m
@@ -89,7 +89,7 @@ class Crawler(Space):
     fitness_scale = 100.0
     max_nodes = MAX_NODES
 
-    # Size classes (`evojax_morph.classes`): chains of one limb, then of two, then the full
+    # Size classes (`evojax_morph.physics.classes`): chains of one limb, then of two, then the full
     # template (7, 13 and 19 bodies; 12, 18 and 24 dofs). Of 20,000 random 10-mutation bodies
     # (a horizon's end: the deepest mix) 38.6% fit the first, 49.0% the second (and not the
     # first), 12.4% only the full template; with these shares a batch of 256 to 4,096 such
@@ -180,11 +180,11 @@ class Crawler(Space):
         return (100.0 * pairs + 10.0 * limbs).astype(jnp.float32)
 
     @functools.cached_property
-    def plan(self) -> physics.BodyPlan:
+    def plan(self) -> templates.BodyPlan:
         torso, limb = (0.3, 0.45, 0.7, 1.0), (0.85, 0.5, 0.2, 1.0)
         nodes = self._limbs + 1  # the template's body k + 1 is the morphology's node nodes[k]
         body_of = {0: 0, **{int(n): k + 1 for k, n in enumerate(nodes)}}
-        return physics.BodyPlan(
+        return templates.BodyPlan(
             geom_names=("geom0",) + tuple(f"geom{i}" for i in nodes),
             geom_body=tuple(range(len(nodes) + 1)),
             geom_rgba=(torso,) + (limb,) * len(nodes),
@@ -196,7 +196,7 @@ class Crawler(Space):
             cone="elliptic",
         )
 
-    def layout(self, m: Morphology) -> physics.Layout:
+    def layout(self, m: Morphology) -> templates.Layout:
         limb = m.active[1:]
         length = jnp.where(limb, m.attrs[1:, 0], LENGTHS[1])  # inactive slots: a valid limb
         vector = length[:, None] * SLOT_DIR  # (18, 3): each limb from its hinge to its tip
@@ -206,7 +206,7 @@ class Crawler(Space):
         axis = jnp.where(limb, m.attrs[1:, 1], DEFAULT_AXIS)
         torso_from = jnp.array([[-TORSO_HALF, 0.0, 0.0]])
         limbs, geoms = self._limbs, np.r_[0, self._limbs + 1]  # the template's slots
-        layout = physics.Layout(
+        layout = templates.Layout(
             root_pos=jnp.zeros(3),
             limb_active=limb[limbs],
             limb_pos=limb_pos[limbs],
@@ -216,7 +216,7 @@ class Crawler(Space):
             geom_radius=jnp.full(MAX_NODES, LIMB_RADIUS).at[0].set(TORSO_RADIUS)[geoms],
             limb_axis=jnp.where((axis == LIFT)[:, None], SLOT_LIFT, SLOT_SWING)[limbs],
         )
-        height = CLEARANCE - physics.lowest_point(self.plan, layout)
+        height = CLEARANCE - templates.lowest_point(self.plan, layout)
         return layout.replace(root_pos=jnp.zeros(3).at[2].set(height))
 
 

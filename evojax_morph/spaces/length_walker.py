@@ -12,8 +12,8 @@ import functools
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_morph import physics
 from evojax_morph.morphology import Morphology
+from evojax_morph.physics import templates
 from evojax_morph.spaces.base import Space
 
 TRUNK_LENGTH = 1.0  # m
@@ -110,9 +110,9 @@ class LengthWalker(Space):
         return jnp.sum((W_CLOSE * close - W_LENGTH * off)[1:])
 
     @functools.cached_property
-    def plan(self) -> physics.BodyPlan:
+    def plan(self) -> templates.BodyPlan:
         trunk, foot = (0.35, 0.55, 0.8, 1.0), (0.85, 0.5, 0.2, 1.0)
-        return physics.BodyPlan(
+        return templates.BodyPlan(
             geom_names=("geom0", "geom1", "geom2"),
             geom_body=(0, 1, 2),
             geom_rgba=(trunk, foot, foot),
@@ -120,12 +120,12 @@ class LengthWalker(Space):
             limb_parent=(0, 0),
         )
 
-    def layout(self, m: Morphology) -> physics.Layout:
+    def layout(self, m: Morphology) -> templates.Layout:
         length = m.attrs[1:, 0]
         x = jnp.asarray(SITE_X)[m.site[1:]]
         zeros2 = jnp.zeros(2)
         half = TRUNK_LENGTH / 2
-        layout = physics.Layout(
+        layout = templates.Layout(
             root_pos=jnp.zeros(3),
             limb_active=m.active[1:],
             limb_pos=jnp.stack([x, zeros2, zeros2], -1),  # a foot's hinge sits on the trunk's axis
@@ -136,5 +136,5 @@ class LengthWalker(Space):
             ),
             geom_radius=jnp.array([TRUNK_RADIUS, FOOT_RADIUS, FOOT_RADIUS]),
         )
-        height = CLEARANCE - physics.lowest_point(self.plan, layout)
+        height = CLEARANCE - templates.lowest_point(self.plan, layout)
         return layout.replace(root_pos=jnp.zeros(3).at[2].set(height))

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import jax
 
-from evojax_morph import plots
+from evojax_morph.run import plots
 from evojax_morph.spaces import make_space
 from evojax_morph.tame import TameConfig, pick_held_out, pretrain
 

@@ -10,7 +10,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from evojax_morph.gnn import TreeGNN, node_features
+from evojax_morph.agents.gnn import TreeGNN, node_features
 from evojax_morph.morphology import Morphology
 
 STATE_SIZE = 4  # per node: dx, dz, cos(pitch), sin(pitch)

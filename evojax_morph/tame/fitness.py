@@ -15,10 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from evojax_morph.locomotion import Locomotion, TaskConfig
 from evojax_morph.morphology import Morphology
 from evojax_morph.spaces import Space
 from evojax_morph.tame.classifier import STATE_SIZE, Classifier, log_likelihood
+from evojax_morph.tasks import Locomotion, TaskConfig
 
 # On the CPU backend (jaxlib 0.10.2, 2 cores) a vmapped MJX rollout of 2,784 or more worlds in one
 # call never returns (2,752 runs); batches of bodies are split so that a call holds fewer.

@@ -12,8 +12,8 @@ import jax
 import mujoco
 import numpy as np
 
-from evojax_morph.capsules import DENSITY
-from evojax_morph.physics import FREE_ROOT, ROOT_JOINTS, BodyPlan, Layout
+from evojax_morph.physics.capsules import DENSITY
+from evojax_morph.physics.templates import FREE_ROOT, ROOT_JOINTS, BodyPlan, Layout
 
 
 def write_mjcf(plan: BodyPlan, layout: Layout, name: str, padded: bool) -> str:

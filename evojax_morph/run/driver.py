@@ -22,15 +22,15 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from evojax_morph import bodylog, checkpoints, controllers, video
-from evojax_morph.confirm import Confirmed, confirm, lower_confirm
-from evojax_morph.engines import registered
 from evojax_morph.fitnesses import get_fitness
 from evojax_morph.morphology import Morphology
-from evojax_morph.pipeline import Greedy, Pipeline, RunConfig, build, make_greedy_rollout
-from evojax_morph.report import confirmed_entry, report_stage
+from evojax_morph.physics.engines import registered
+from evojax_morph.run import bodylog, checkpoints, saved_controllers, video
+from evojax_morph.run.compile_ahead import Warmup
+from evojax_morph.run.confirm import Confirmed, confirm, lower_confirm
+from evojax_morph.run.pipeline import Greedy, Pipeline, RunConfig, build, make_greedy_rollout
+from evojax_morph.run.report import confirmed_entry, report_stage
 from evojax_morph.sharding import barrier, batch_mesh, replicated, to_host
-from evojax_morph.warmup import Warmup
 
 CONFIRM_SALT = 0x636F6E66  # the confirm stage's key: fold_in(PRNGKey(seed), CONFIRM_SALT)
 
@@ -135,7 +135,7 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
     if lead and not resume:
         write_config()
     p = build(cfg)
-    gif = gif and controllers.has_controllers(p.fitness)  # asked for, and a controller to show
+    gif = gif and saved_controllers.has_controllers(p.fitness)  # asked for, and a controller to show
     log = print if lead else (lambda *a, **k: None)
     log(f"evojax_morph: {cfg.agent} on {cfg.space} with {cfg.fitness} fitness, {cfg.num_envs} "
         f"parallel evolutions x {cfg.steps} steps, horizon {p.env.horizon}, on "
@@ -349,9 +349,9 @@ def reported_best(out: Path, p: Pipeline, record: dict, top: Confirmed | None, d
         return top.morph, top.mean, params, cfg
     if record["confirmed"]:
         morph = Morphology.from_dict(record["best_morphology"])
-        if not controllers.has_controllers(p.fitness):
+        if not saved_controllers.has_controllers(p.fitness):
             return morph, record["confirmed"][0]["mean"], None, p.fitness
-        kept = controllers.load(out / controllers.DIR / "best")
+        kept = saved_controllers.load(out / saved_controllers.DIR / "best")
         return morph, record["confirmed"][0]["mean"], kept.params, kept.fitness
     return (*draw, p.fitness)
 
@@ -420,7 +420,7 @@ def save_controllers(out: Path, p: Pipeline, seed: int, best, best_fitness: floa
     that trains controllers; every process calls it. best_cfg: the fitness config the best
     body's controllers were trained under (default the run's; the confirm stage's has C
     controllers). Returns the names saved."""
-    if not controllers.has_controllers(p.fitness):
+    if not saved_controllers.has_controllers(p.fitness):
         return []
     bodies = [("best", best, best_params, best_fitness, best_cfg or p.fitness)]
     if greedy is not None:
@@ -428,7 +428,7 @@ def save_controllers(out: Path, p: Pipeline, seed: int, best, best_fitness: floa
                    in enumerate(zip(greedy.morphs, greedy.params, greedy.fitness))]
     for name, morph, params, fitness, fit_cfg in bodies:
         label = name if name == "best" else f"step {name[4:]}"
-        saved = controllers.SavedController(p.space, fit_cfg, seed, morph, params, fitness,
+        saved = saved_controllers.SavedController(p.space, fit_cfg, seed, morph, params, fitness,
                                             label)
-        controllers.save(out / controllers.DIR / name, saved)
+        saved_controllers.save(out / saved_controllers.DIR / name, saved)
     return [name for name, *_ in bodies]

@@ -25,7 +25,7 @@ Float32 only. The derived constants are computed by `specialise` in the JAX impl
 `dof_M0` and `stat.meaninertia` are not read by Warp. `geom_aabb` (the broadphase's boxes) is
 recomputed from the capsule sizes.
 
-  from evojax_morph import warp
+  from evojax_morph.physics import warp
   ok, reason = warp.available()
   model, data = warp.to_warp(space, jax.vmap(space.mjx_model)(morphs), envs=8)
   data = warp.step_worlds(model, data, ctrl)   # ctrl: (B * E, nu)
@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
-from evojax_morph.physics import MUJOCO_WARP, flat_models, mjx
+from evojax_morph.physics.templates import MUJOCO_WARP, flat_models, mjx
 from evojax_morph.spaces import Space
 
 INSTALL_HINT = "pip install 'evojax_morph[warp]'"
@@ -158,7 +158,7 @@ def count_stream_registrations() -> None:
         register, unregister = core.wp_cuda_stream_register, core.wp_cuda_stream_unregister
     except AttributeError as e:
         warnings.warn(f"warp-lang's stream registrations are not counted ({e}): a Warp call "
-                      "may fail with 'unknown stream' (evojax_morph.warp)", stacklevel=2)
+                      "may fail with 'unknown stream' (evojax_morph.physics.warp)", stacklevel=2)
         return
     if getattr(register, "counted", False):
         return
@@ -386,7 +386,7 @@ def _fused_step(n: int):
     # MJX wraps its shim in `ffi.format_args_for_warp`: the copy is of the function inside.
     one = getattr(getattr(mjx_warp, "_step_shim", None), "__wrapped__", None)
     if one is None or not hasattr(mjx_warp, "_step_jax_impl"):
-        warnings.warn("MJX's Warp step is not as evojax_morph.warp expects (MJX 3.17): one "
+        warnings.warn("MJX's Warp step is not as evojax_morph.physics.warp expects (MJX 3.17): one "
                       "call into Warp per physics step, slower", stacklevel=3)
         return None
 

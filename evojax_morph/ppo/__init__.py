@@ -4,14 +4,14 @@
 `train(keys, morphs, params) -> TrainResult`, batched over bodies at its top: `jax.jit(train)`
 trains B bodies, each with `controllers` x `num_envs` worlds, in one compiled call. Policies,
 values and updates are vmapped over the B x K controllers; the physics of a control step is ONE
-step of all B x K x num_envs worlds on the engine `physics` names (`evojax_morph.engines`): the
+step of all B x K x num_envs worlds on the engine `physics` names (`evojax_morph.physics.engines`): the
 flat batch MuJoCo Warp needs, and on the JAX engine a vmap over bodies around their worlds. With
 `controllers` K > 1 every body trains K independent controllers side by side (parameters with a
 leading (K,) axis, all inherited by a child) and its fitness is their mean: one PPO run is a
 noisy measure of a body, since a controller either finds a gait or does not
 (docs/benchmarks.md, "Reliability of the PPO fitness"). It is built from brax's PPO
 parts (networks, GAE, running observation statistics); the log-probability and entropy are our
-own (`evojax_morph.ppo_networks`, with the parameters and the loss; re-exported here), masked
+own (`evojax_morph.ppo.networks`, with the parameters and the loss; re-exported here), masked
 to the motors a body has, since brax's sum over every action dimension of the padded template.
 Parameter shapes are the same for every body of a space, so a child can start
 from its parent's controller (policy inheritance).
@@ -36,10 +36,9 @@ from brax.training.acme import running_statistics
 from brax.training.agents.ppo import losses as ppo_losses
 from flax import struct
 
-from evojax_morph.engines import Engine, get_engine, repeat_worlds
-from evojax_morph.locomotion import EnvState, Locomotion, TaskConfig
 from evojax_morph.morphology import Morphology, tree_select
-from evojax_morph.ppo_networks import (
+from evojax_morph.physics.engines import Engine, get_engine, repeat_worlds
+from evojax_morph.ppo.networks import (
     Params,
     PPOConfig,
     Transition,
@@ -50,6 +49,7 @@ from evojax_morph.ppo_networks import (
     masked_log_prob,
 )
 from evojax_morph.spaces import Space
+from evojax_morph.tasks import EnvState, Locomotion, TaskConfig
 
 
 class Rollout(NamedTuple):
@@ -122,7 +122,7 @@ def make_train(
     init(key) -> Params: one body's controllers (K stacked along a leading axis if K > 1).
     train(keys (B,), morphs (B, ...), params (B, ...)) -> TrainResult of (B,) arrays: each body
       trains its K controllers from `params`, every world of every body (B x K x num_envs) in
-      one flat physics batch (`evojax_morph.engines`), then scores them (`eval_episodes`
+      one flat physics batch (`evojax_morph.physics.engines`), then scores them (`eval_episodes`
       deterministic episodes each, B x K x eval_episodes worlds).
     """
     cfg.validate()

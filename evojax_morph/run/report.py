@@ -8,10 +8,10 @@ import time
 
 import numpy as np
 
-from evojax_morph import bodylog, plots, video
-from evojax_morph.confirm import Confirmed
-from evojax_morph.locomotion import gait_word
-from evojax_morph.pipeline import Greedy
+from evojax_morph.run import bodylog, plots, video
+from evojax_morph.run.confirm import Confirmed
+from evojax_morph.run.pipeline import Greedy
+from evojax_morph.tasks import gait_word
 
 
 def timing(total: float, chunks: list[tuple[int, float]]) -> dict:

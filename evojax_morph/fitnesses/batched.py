@@ -12,9 +12,9 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from evojax_morph import engines
 from evojax_morph.fitnesses import FitnessConfig, FitnessResult, get_fitness
 from evojax_morph.morphology import Morphology
+from evojax_morph.physics import engines
 from evojax_morph.ppo import Params
 from evojax_morph.sharding import batch_mesh, replicated, shard_batch
 from evojax_morph.spaces import Space

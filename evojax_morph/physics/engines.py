@@ -6,7 +6,7 @@ says how that batch is made and stepped:
 
 * "jax": MJX's JAX engine. The B specialised models stay a (B,) batch and a step is a vmap over
   bodies around a vmap over each body's W worlds (the model shared by its worlds).
-* "warp": MuJoCo Warp through MJX (`evojax_morph.warp`): the fields that differ per body are
+* "warp": MuJoCo Warp through MJX (`evojax_morph.physics.warp`): the fields that differ per body are
   repeated per world and Warp steps the N worlds in one kernel launch per stage. Float32, a GPU
   (or, slowly, the CPU), and `pip install 'evojax_morph[warp]'`.
 
@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from evojax_morph.morphology import tree_select
-from evojax_morph.physics import mjx
+from evojax_morph.physics.templates import mjx
 from evojax_morph.spaces import Space
 
 
@@ -103,8 +103,8 @@ JAX = Engine(
 
 
 def _warp():
-    """evojax_morph.warp, imported on first use (it needs the optional MuJoCo Warp)."""
-    from evojax_morph import warp
+    """evojax_morph.physics.warp, imported on first use (it needs the optional MuJoCo Warp)."""
+    from evojax_morph.physics import warp
 
     return warp
 

@@ -2,7 +2,7 @@
 
 `replay(saved, key)` rolls out the controller's deterministic policy on its body in MJX, as the
 PPO fitness's evaluation episodes do, and records the positions; `draw_frames` turns them into
-pictures with MuJoCo's renderer where OpenGL works (`evojax_morph.opengl.choose_gl`:
+pictures with MuJoCo's renderer where OpenGL works (`evojax_morph.physics.opengl.choose_gl`:
 `MUJOCO_GL` if set, else the display's GL, else EGL, else OSMesa, each tried in a subprocess
 first) and otherwise with a matplotlib drawing of the capsules, which needs no GL;
 `write_video` encodes them.
@@ -22,11 +22,11 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from evojax_morph import controllers
-from evojax_morph.controllers import SavedController
-from evojax_morph.locomotion import Locomotion
-from evojax_morph.opengl import choose_gl
-from evojax_morph.ppo_networks import make_deterministic_policy, make_init, make_networks
+from evojax_morph.physics.opengl import choose_gl
+from evojax_morph.ppo.networks import make_deterministic_policy, make_init, make_networks
+from evojax_morph.run import saved_controllers
+from evojax_morph.run.saved_controllers import SavedController
+from evojax_morph.tasks import Locomotion
 
 BACKENDS = ("auto", "mujoco", "matplotlib")
 
@@ -354,7 +354,7 @@ def render(run_dir: Path, body: str = "best", out: Path | None = None, **kwargs)
     Raises:
       ValueError: an unknown `body`; FileNotFoundError: no controller saved for it.
     """
-    saved = controllers.load(controllers.body_dir(run_dir, body))
+    saved = saved_controllers.load(saved_controllers.body_dir(run_dir, body))
     stem = Path(out) if out is not None else Path(run_dir) / body.replace(" ", "")
     return render_saved(saved, stem, **kwargs)
 

@@ -18,8 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.stats
 
-from evojax_morph.fitness import evaluate, lower_evaluate
 from evojax_morph.fitnesses import FitnessConfig
+from evojax_morph.fitnesses.batched import evaluate, lower_evaluate
 from evojax_morph.morphology import Morphology
 from evojax_morph.ppo import Params
 from evojax_morph.sharding import to_host

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 
-from evojax_morph.gym_env import GymEvolutionEnv
+from evojax_morph.envs.gym_env import GymEvolutionEnv
 
 
 class SB3EvolutionEnv(VecEnv):

@@ -21,7 +21,7 @@ outright. So `wait` compiles such a program on the calling thread, where no Warp
 running: XLA runs them inside the call that made them. Lowering launches no kernel and survived
 (`lower` mode: 3 of 3 runs, 21 to 23 lowerings during 30 calls). The MJX functions it runs that
 set Warp's default device for the whole process hold Warp's call lock
-(`evojax_morph.warp.callback_lock`).
+(`evojax_morph.physics.warp.callback_lock`).
 docs/benchmarks.md, "Compiling on the second thread breaks Warp's graph capture".
 
 With Warp on several GPUs the run turns the warmup off (`driver.execute`): runs on 2 H100s

@@ -13,9 +13,9 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
-from evojax_morph.evolution import EvolutionEnv, Observation
-from evojax_morph.fitness import make_fitness_fn
 from evojax_morph.fitnesses import FitnessConfig
+from evojax_morph.fitnesses.batched import make_fitness_fn
+from evojax_morph.mdp import EvolutionEnv, Observation
 from evojax_morph.spaces import Space, make_space
 
 

@@ -9,11 +9,11 @@ A space describes its bodies in two parts:
 * a dynamic `Layout`, computed from a morphology with jittable JAX ops: which slots are active
   and where their capsules lie.
 
-`evojax_morph.mjcf.write_mjcf` turns a plan and a layout into MJCF: with every slot (the padded
+`evojax_morph.physics.mjcf.write_mjcf` turns a plan and a layout into MJCF: with every slot (the padded
 template) or with the active slots alone (the export, which MuJoCo compiles by itself and so
 serves as the independent reference). `specialise` turns the template `mjx.Model` into the
 model of one morphology by overwriting numeric fields only (the capsules' frames, masses and
-inertias from `evojax_morph.capsules`), and recomputes every derived constant that the MuJoCo
+inertias from `evojax_morph.physics.capsules`), and recomputes every derived constant that the MuJoCo
 compiler would have computed for the unpadded body.
 
 How an inactive slot is made inert:
@@ -37,7 +37,7 @@ import mujoco
 import numpy as np
 from flax import struct
 
-from evojax_morph import capsules
+from evojax_morph.physics import capsules
 
 
 def _mujoco_warp_package() -> str:

@@ -3,7 +3,7 @@
 The model is an argument of `reset` and `step`, never state on the task, so one task object
 serves every morphology of a space and a batch of models vmaps through it. `reset_worlds` and
 `step_worlds` do the same for a flat batch of worlds of different bodies on any physics engine
-(`evojax_morph.engines`), as the PPO fitness steps them; both paths share the task's code.
+(`evojax_morph.physics.engines`), as the PPO fitness steps them; both paths share the task's code.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from evojax_morph.engines import Engine
-from evojax_morph.physics import mjx
+from evojax_morph.physics.engines import Engine
+from evojax_morph.physics.templates import mjx
 from evojax_morph.spaces import Space
 
 
@@ -182,7 +182,7 @@ class Locomotion:
         outcome = self._outcome(body, state.data.qpos, state.steps, action, data.qpos, data.qvel)
         return outcome.replace(data=data)
 
-    # A FLAT BATCH OF WORLDS on any engine (`evojax_morph.engines`): N worlds, (N,) bodies
+    # A FLAT BATCH OF WORLDS on any engine (`evojax_morph.physics.engines`): N worlds, (N,) bodies
     def reset_worlds(self, engine: Engine, worlds, bodies: Body, keys: jax.Array) -> EnvState:
         """`reset` of N worlds at once: `worlds` from `engine.prepare`, `bodies` (N,) each
         world's `body`, keys (N,)."""

@@ -17,7 +17,7 @@ from brax.training import distribution
 from brax.training.acme import running_statistics
 from brax.training.agents.ppo import networks as brax_networks
 
-from evojax_morph.locomotion import Locomotion
+from evojax_morph.tasks import Locomotion
 
 
 @dataclasses.dataclass(frozen=True)

@@ -24,14 +24,15 @@ from pathlib import Path
 
 import jax
 
-from evojax_morph import agents, checkpoints, driver
-from evojax_morph.determinism import deterministic_gpu, full_precision, persistent_cache
-from evojax_morph.engines import AUTO, list_engines, may_take, registered
+from evojax_morph import agents
 from evojax_morph.fitnesses import Inputs, get_fitness, list_fitnesses, resolve_physics
-from evojax_morph.locomotion import list_tasks, make_task
-from evojax_morph.pipeline import RunConfig
+from evojax_morph.physics.determinism import deterministic_gpu, full_precision, persistent_cache
+from evojax_morph.physics.engines import AUTO, list_engines, may_take, registered
+from evojax_morph.run import checkpoints, driver
+from evojax_morph.run.pipeline import RunConfig
 from evojax_morph.sharding import barrier, init_distributed
 from evojax_morph.spaces import Space, get_space, list_spaces
+from evojax_morph.tasks import list_tasks, make_task
 
 
 def gpu_defaults(space: str) -> dict:
@@ -228,7 +229,7 @@ def add_fitness_flags(group, defaults: RunConfig) -> None:
         "--table",
         default="",
         help="table: the landscape table (.npz) built by `python -m experiments.build_tables` "
-        "(default: the space's packaged one, evojax_morph/tables/SPACE.npz)",
+        "(default: the space's packaged one, evojax_morph/fitnesses/tables/SPACE.npz)",
     )
     add("--classifier", default="",
         help="tame: directory of a classifier trained by `python -m evojax_morph.tame`")
@@ -251,7 +252,7 @@ def add_fitness_flags(group, defaults: RunConfig) -> None:
     )
     add("--size-classes", dest="classes", action="store_true",
         help="ppo: train each body on the smallest of the space's size-class templates that "
-        "holds it, not the one padded template (the Constructor's; evojax_morph.classes)")
+        "holds it, not the one padded template (the Constructor's; evojax_morph.physics.classes)")
 
 
 def add_agent_flags(group, defaults: RunConfig) -> None:
@@ -375,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
     except (checkpoints.ResumeError, checkpoints.Damaged) as e:
         # Bad input, as the parser's errors: code 2 and why (no checkpoint reads, or a file the
         # run reads back, a saved controller or confirmed.json, is damaged).
-        print(f"python -m evojax_morph.run: error: {e}", file=sys.stderr)
+        print(f"python -m evojax_morph.run.cli: error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
     return 0
 

@@ -19,9 +19,9 @@ from pathlib import Path
 import jax
 
 from evojax_morph import ppo
-from evojax_morph.checkpoints import check, digests, read_error, seal, unseal
 from evojax_morph.fitnesses import FitnessConfig, get_fitness
 from evojax_morph.morphology import Morphology
+from evojax_morph.run.checkpoints import check, digests, read_error, seal, unseal
 from evojax_morph.spaces import Space, make_space
 
 DIR = "controllers"

@@ -1,0 +1,2 @@
+"""The evolution MDP behind other libraries' interfaces: Gymnasium and Stable-Baselines3.
+"""
