@@ -1,9 +1,9 @@
 """evojax_morph: robot morphology design as a Markov Decision Process, on JAX and MJX."""
 
+import evojax_morph.physics.templates  # noqa: F401  (first: it imports mjx quietly)
 from evojax_morph.fitnesses import FitnessConfig, FitnessResult, list_fitnesses, standard_ppo
 from evojax_morph.fitnesses.batched import evaluate, init_params
 from evojax_morph.morphology import Morphology, format_tree, stack, unstack
-from evojax_morph.physics import templates  # noqa: F401  (first: it imports mjx quietly)
 from evojax_morph.physics.determinism import (
     cpu_scheduler_workaround,
     deterministic_gpu,

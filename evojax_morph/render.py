@@ -63,7 +63,8 @@ def parse(argv) -> argparse.Namespace:
         parser.error(f"no run directory {args.run_dir!r}")
     args.body = " ".join(args.body)
     try:
-        args.saved = saved_controllers.load(saved_controllers.body_dir(Path(args.run_dir), args.body))
+        body = saved_controllers.body_dir(Path(args.run_dir), args.body)
+        args.saved = saved_controllers.load(body)
     except (ValueError, FileNotFoundError) as e:
         parser.error(str(e))
     k = args.saved.fitness.ppo.controllers

@@ -18,7 +18,7 @@ Timings exclude compilation (a warm-up call first) and are medians of --repeats 
 --train-steps 0, the evaluation episodes alone) splits a call into learner and rollouts.
 Its device traces (`--trace DIR`) and its count of Warp's graph captures answered where a
 Warp call's time goes (docs/benchmarks.md) and are retired (at git 88d6bf1).
---physics names the engine (`evojax_morph.physics.engines`); --deterministic asks XLA for deterministic
+--physics names the engine (`physics.engines`); --deterministic asks XLA for deterministic
 GPU ops first, as the run command does on the JAX engine unless --fast-gpu (on Warp it leaves
 them off: they buy no reproducibility there); --warp-deterministic MuJoCo Warp's
 `Option.deterministic`, under EVOJAX_MORPH_MUJOCO_WARP=package (`evojax_morph.physics.templates`).
@@ -171,7 +171,7 @@ def main():
         em.deterministic_gpu()
     if args.warp_deterministic and not ew.set_deterministic(True):
         parser.error("--warp-deterministic: MJX runs its vendored MuJoCo Warp, which has no "
-                     "such option; set EVOJAX_MORPH_MUJOCO_WARP=package (evojax_morph.physics.templates)")
+                     "such option; set EVOJAX_MORPH_MUJOCO_WARP=package (physics.templates)")
     full_precision()  # as the run command
 
     space = em.make_space(args.space)

@@ -185,7 +185,7 @@ def bench_space(spec: str, physics_kinds: list[str], batch: int, envs: int, step
 def batch_padding(space, kind, morphs, envs, steps, repeats, graph_mode, naconmax, njmax,
                   ideal_bodies: int):
     """The padding cost of the batch `morphs` (B bodies x `envs` worlds, flat) on the full
-    template and grouped by size class (`evojax_morph.physics.classes`: each class's places, unused ones
+    template and grouped by size class (`physics.classes`: each class's places, unused ones
     m0), against the mean time of each body's own unpadded model stepping the same B x E worlds
     (over the first `ideal_bodies`, a random sample: each unpadded body compiles anew):
     `batch_padding_cost` and `classes_padding_cost`, 1 - unpadded / padded."""

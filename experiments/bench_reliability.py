@@ -42,7 +42,7 @@ from evojax_morph import ppo
 from evojax_morph.physics import engines
 from evojax_morph.physics.determinism import full_precision
 
-# The main job's inner PPO on a GPU today (run.py: 16 envs, 20-step unrolls, 50,000 steps).
+# The main job's inner PPO on a GPU today (run/cli.py: 16 envs, 20-step unrolls, 50,000 steps).
 STANDARD = em.standard_ppo(50_000)
 VARIANTS = {
     "standard": {},

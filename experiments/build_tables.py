@@ -211,7 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     add("--task", default="distance", choices=em.list_tasks(),
         help="the task the controllers learn (`em.make_task`); the table fitness serves only "
         "this task")
-    add("--out", default=None, help="the table (.npz); default: evojax_morph/fitnesses/tables/SPACE.npz")
+    add("--out", default=None, help="the table (.npz); default: the packaged "
+        "evojax_morph/fitnesses/tables/SPACE.npz")
     add("--max-batches", type=int, default=None, help="stop after this many batches")
     add("--deep-top", type=int, default=0,
         help="give the N bodies of the highest means --deep-seeds results (0: none)")

@@ -42,7 +42,7 @@ def test_run_asks_for_deterministic_ops_unless_the_ppo_fitness_may_step_on_warp(
     from evojax_morph.run import cli
 
     asked = []
-    monkeypatch.setattr(run, "deterministic_gpu", lambda: asked.append(True))
+    monkeypatch.setattr(cli, "deterministic_gpu", lambda: asked.append(True))
     monkeypatch.setattr(engines, "warp_imports", lambda: True)
 
     def asks(*argv) -> bool:

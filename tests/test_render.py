@@ -104,9 +104,10 @@ def test_a_damaged_controller_is_an_error(run_dir, tmp_path, capsys):
     for i, f in enumerate(data_files(out / saved_controllers.DIR / "step0")):
         for damage in DAMAGES:
             run = tmp_path / f"{i}{damage.__name__}"
-            shutil.copytree(out / saved_controllers.DIR / "step0", run / saved_controllers.DIR / "step0")
+            step0 = Path(saved_controllers.DIR, "step0")
+            shutil.copytree(out / step0, run / step0)
             damage(run / f.relative_to(out))
-            said = f"saved controller {run / controllers.DIR / 'step0'} "
+            said = f"saved controller {run / saved_controllers.DIR / 'step0'} "
             try:
                 loaded = em.load_controller(run / saved_controllers.DIR / "step0")
             except Damaged as e:  # (which array fails first may differ from one read to the next)
@@ -255,7 +256,7 @@ def test_render_command_and_its_bad_input(run_dir, tmp_path, capsys):
 
 _DRAW = (
     "import numpy as np, evojax_morph as em\n"
-    "from evojax_morph import video\n"
+    "from evojax_morph.run import video\n"
     "s = em.make_space('bad_walker')\n"
     "saved = em.SavedController(s, None, 0, s.optimum(), None, 0.0, 'best')\n"
     "rep = video.Replay(np.tile(s.template.qpos0, (2, 1)), np.zeros(1), 0.02)\n"

@@ -23,7 +23,7 @@ state = jax.tree.map(everywhere, jax.eval_shape(p.agent.init, jax.random.PRNGKey
 lowered = make_greedy_rollout(p).lower(state.learner, state.first, jax.random.PRNGKey(1))
 placed = jax.tree.leaves(lowered.compile().input_shardings)
 assert {d for s in placed for d in s.device_set} == {jax.local_devices()[0]}, placed
-assert run.main(sys.argv[1:]) == 0  # a run saved on 4 devices, resumed by the caller on 1
+assert cli.main(sys.argv[1:]) == 0  # a run saved on 4 devices, resumed by the caller on 1
 """
 
 

@@ -399,7 +399,7 @@ import evojax_morph as em
 from evojax_morph.physics import templates
 from evojax_morph.physics import warp as ew
 from mujoco_warp._src import collision_driver
-assert physics.MUJOCO_WARP == "package", physics.MUJOCO_WARP
+assert templates.MUJOCO_WARP == "package", templates.MUJOCO_WARP
 sorts, sort = [], collision_driver._sort_contacts
 collision_driver._sort_contacts = lambda m, d: sorts.append(1) or sort(m, d)
 space = em.make_space("bad_walker")

@@ -34,7 +34,7 @@ from evojax_morph.fitnesses.base import Fitness, FitnessConfig, FitnessResult, I
 from evojax_morph.morphology import Morphology, stack
 from evojax_morph.spaces import Space
 
-TABLES = Path(__file__).resolve().parents[1] / "tables"
+TABLES = Path(__file__).resolve().parent / "tables"
 FORMAT = 1  # the file layout's version, in every table's metadata
 ATTR_RESOLUTION = 1e-5  # attributes closer than this are one value (canonical uses 6 digits)
 

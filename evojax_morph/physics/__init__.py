@@ -1,3 +1,4 @@
-"""The physics of the bodies: the padded MuJoCo templates, capsules, MJCF, the engines that step a flat batch
-of worlds (MJX's JAX engine, MuJoCo Warp), size classes, the renderer's OpenGL and XLA's flags.
-"""
+"""The physics of the bodies: one padded MuJoCo template per space (`templates`), the solids of
+its capsules (`capsules`), MJCF (`mjcf`), the engines that step a flat batch of worlds (`engines`:
+MJX's JAX engine, MuJoCo Warp in `warp`), size classes (`classes`), the renderer's OpenGL
+(`opengl`) and the XLA flags asked for before JAX starts (`determinism`)."""

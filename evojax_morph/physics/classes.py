@@ -26,7 +26,7 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-from evojax_morph.spaces import Space
+from evojax_morph.physics.templates import SpaceLike
 
 
 def capacities(shares: tuple[float, ...], batch: int) -> list[int]:
@@ -48,7 +48,7 @@ def assign(need: jax.Array, caps: list[int]) -> tuple[list[jax.Array], jax.Array
     return places, placed.all()
 
 
-def places(space: Space, morphs) -> tuple[jax.Array, list[jax.Array], jax.Array]:
+def places(space: SpaceLike, morphs) -> tuple[jax.Array, list[jax.Array], jax.Array]:
     """A batch of `space`'s bodies by size class: (need (B,), the smallest class holding each
     body, the last index the full template; the places of each class and whether every body
     has one, as `assign` gives them for the space's shares)."""
@@ -60,7 +60,7 @@ def places(space: Space, morphs) -> tuple[jax.Array, list[jax.Array], jax.Array]
     return need, *assign(need, capacities(shares, batch))
 
 
-def grouped(space: Space, train: Callable, class_trains: list[Callable]) -> Callable:
+def grouped(space: SpaceLike, train: Callable, class_trains: list[Callable]) -> Callable:
     """`train(keys, morphs, params)` (the full template's, results of (B, ...) arrays) run per
     size class: `class_trains[c]` trains on class c's template (`space.size_classes()[c]`)."""
     trains = list(class_trains) + [train]

@@ -29,8 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from evojax_morph.morphology import tree_select
-from evojax_morph.physics.templates import mjx
-from evojax_morph.spaces import Space
+from evojax_morph.physics.templates import SpaceLike, mjx
 
 
 class Engine(NamedTuple):
@@ -60,8 +59,8 @@ class Engine(NamedTuple):
 
     name: str
     available: Callable[[], tuple[bool, str]]
-    prepare: Callable[[Space, mjx.Model, int], Any]
-    make_data: Callable[[Any, Space, int], mjx.Data]
+    prepare: Callable[[SpaceLike, mjx.Model, int], Any]
+    make_data: Callable[[Any, SpaceLike, int], mjx.Data]
     step: Callable[[Any, mjx.Data, int], mjx.Data]
     forward: Callable[[Any, mjx.Data], mjx.Data]
     where: Callable[[jax.Array, mjx.Data, mjx.Data], mjx.Data]
@@ -83,7 +82,7 @@ def _per_body(fn):
     return batched
 
 
-def _jax_make_data(models: mjx.Model, space: Space, n: int) -> mjx.Data:
+def _jax_make_data(models: mjx.Model, space: SpaceLike, n: int) -> mjx.Data:
     del space
     one = mjx.make_data(jax.tree.map(lambda x: x[0], models))
     return jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), one)

@@ -9,11 +9,11 @@ A space describes its bodies in two parts:
 * a dynamic `Layout`, computed from a morphology with jittable JAX ops: which slots are active
   and where their capsules lie.
 
-`evojax_morph.physics.mjcf.write_mjcf` turns a plan and a layout into MJCF: with every slot (the padded
+`mjcf.write_mjcf` turns a plan and a layout into MJCF: with every slot (the padded
 template) or with the active slots alone (the export, which MuJoCo compiles by itself and so
 serves as the independent reference). `specialise` turns the template `mjx.Model` into the
 model of one morphology by overwriting numeric fields only (the capsules' frames, masses and
-inertias from `evojax_morph.physics.capsules`), and recomputes every derived constant that the MuJoCo
+inertias from `capsules`), and recomputes every derived constant that the MuJoCo
 compiler would have computed for the unpadded body.
 
 How an inactive slot is made inert:
@@ -30,6 +30,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import io
+from typing import Any, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -87,6 +88,26 @@ INACTIVE_MARGIN = -1e3  # m: contacts of an inactive geom never activate
 INACTIVE_ARMATURE = 1.0  # kg m^2: keeps the mass matrix of a massless slot positive definite
 ROOT_JOINTS = ("rootx", "rootz", "rooty")  # a planar root: slides along x and z, hinge about y
 FREE_ROOT = "root"  # a free root's joint: 7 qpos (position, quaternion), 6 dofs
+
+
+class SpaceLike(Protocol):
+    """What the engines, MuJoCo Warp and the size classes read of a space; every
+    `evojax_morph.spaces.Space` is one (the spaces build on this package, so it names them by
+    what it reads)."""
+
+    name: str
+    max_nodes: int
+    template: mujoco.MjModel  # the padded template
+    plan: BodyPlan
+
+    def mjx_model(self, m: Any) -> Any: ...  # one body's specialised MJX model
+
+    def initial(self) -> Any: ...  # m0
+
+    @property
+    def full_share(self) -> float: ...
+
+    def size_classes(self) -> tuple: ...
 
 
 @dataclasses.dataclass(frozen=True)

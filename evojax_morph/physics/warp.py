@@ -43,8 +43,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
-from evojax_morph.physics.templates import MUJOCO_WARP, flat_models, mjx
-from evojax_morph.spaces import Space
+from evojax_morph.physics.templates import MUJOCO_WARP, SpaceLike, flat_models, mjx
 
 INSTALL_HINT = "pip install 'evojax_morph[warp]'"
 # Fields `specialise` writes that Warp does not read.
@@ -209,7 +208,7 @@ def _capsule_aabb(template: mujoco.MjModel, geom_size: jax.Array) -> jax.Array:
 
 
 def to_warp(
-    space: Space,
+    space: SpaceLike,
     models: mjx.Model,
     envs: int,
     naconmax_per_world: int | None = None,
@@ -243,7 +242,7 @@ def to_warp(
     return model, make_worlds(space, worlds, naconmax_per_world, njmax)
 
 
-def world_model(space: Space, models: mjx.Model, envs: int, graph_mode=None) -> mjx.Model:
+def world_model(space: SpaceLike, models: mjx.Model, envs: int, graph_mode=None) -> mjx.Model:
     """The Warp model of `to_warp` alone: B bodies' `plan.specialised_fields` (but `dof_M0`) and
     `geom_aabb` repeated per world, a leading (B x envs,) axis on each; jittable."""
     _require()
@@ -286,7 +285,7 @@ def put_model(mj_model: mujoco.MjModel, graph_mode=None) -> mjx.Model:
     return model.replace(opt=model.opt.replace(_impl=impl))
 
 
-def buffers(space: Space) -> tuple[int, int]:
+def buffers(space: SpaceLike) -> tuple[int, int]:
     """`(contacts, rows)` per world: what the largest body of `space` can need at once.
 
     MuJoCo Warp sizes its contact pool and constraint rows ahead, and launches many solver
@@ -314,7 +313,7 @@ def buffers(space: Space) -> tuple[int, int]:
 
 
 def make_worlds(
-    space: Space,
+    space: SpaceLike,
     worlds: int,
     naconmax_per_world: int | None = None,
     njmax: int | None = None,

@@ -4,7 +4,7 @@
 `train(keys, morphs, params) -> TrainResult`, batched over bodies at its top: `jax.jit(train)`
 trains B bodies, each with `controllers` x `num_envs` worlds, in one compiled call. Policies,
 values and updates are vmapped over the B x K controllers; the physics of a control step is ONE
-step of all B x K x num_envs worlds on the engine `physics` names (`evojax_morph.physics.engines`): the
+step of all B x K x num_envs worlds on the engine `physics` names (`physics.engines`): the
 flat batch MuJoCo Warp needs, and on the JAX engine a vmap over bodies around their worlds. With
 `controllers` K > 1 every body trains K independent controllers side by side (parameters with a
 leading (K,) axis, all inherited by a child) and its fitness is their mean: one PPO run is a

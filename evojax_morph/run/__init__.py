@@ -1,4 +1,5 @@
-"""A run of the command line, by stages: its pipeline (space -> fitness -> MDP -> agent), the driver's loop
-with checkpoints and the body log, compile-ahead, confirming the best bodies, the report (plots, videos)
-and the saved controllers. `python -m evojax_morph.run` starts one (`cli`).
-"""
+"""A run, by stages: `pipeline` assembles space -> fitness -> MDP -> agent, `driver` runs the
+outer loop with its `checkpoints` and `bodylog`, `compile_ahead` lowers later programs on a
+second thread, `confirm` measures the best bodies again, `report` writes the summary with its
+`plots` and `video`, and `saved_controllers` keeps trained controllers with their bodies.
+`python -m evojax_morph.run` starts one (`cli`)."""

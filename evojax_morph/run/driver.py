@@ -135,7 +135,7 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
     if lead and not resume:
         write_config()
     p = build(cfg)
-    gif = gif and saved_controllers.has_controllers(p.fitness)  # asked for, and a controller to show
+    gif = gif and saved_controllers.has_controllers(p.fitness)  # asked, and a controller to show
     log = print if lead else (lambda *a, **k: None)
     log(f"evojax_morph: {cfg.agent} on {cfg.space} with {cfg.fitness} fitness, {cfg.num_envs} "
         f"parallel evolutions x {cfg.steps} steps, horizon {p.env.horizon}, on "

@@ -1,5 +1,5 @@
 """Figures: a run's learning curve, the morphologies of its greedy trajectory, its confirmed
-bodies, TAME's training."""
+bodies."""
 
 from __future__ import annotations
 
@@ -111,24 +111,5 @@ def plot_confirmed(path, confirmed: list[dict]) -> None:
     ax.set_yticks(y, [c["body"] for c in confirmed], fontsize=6)
     ax.set_xlabel("fitness")
     ax.legend(loc="best", fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-
-
-def plot_tame_history(path, history: list[dict]) -> None:
-    """The TAME classifier per generation: log-likelihood per motor and accuracy, on the bodies
-    it trains on and on held-out bodies, against chance."""
-    gens = [h["generation"] for h in history]
-    fig = _figure(figsize=(9, 3.4))
-    axes = fig.subplots(1, 2)
-    for ax, metric in zip(axes, ("loglik", "accuracy")):
-        ax.plot(
-            gens, [h[f"train_{metric}"] for h in history], label="training bodies (their rollouts)"
-        )
-        if "held_out_" + metric in history[0]:
-            ax.plot(gens, [h[f"held_out_{metric}"] for h in history], label="held-out bodies")
-        ax.axhline(history[0][f"chance_{metric}"], color="0.5", ls="--", label="chance")
-        ax.set(xlabel="generation", ylabel="log q per motor" if metric == "loglik" else "accuracy")
-    axes[0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

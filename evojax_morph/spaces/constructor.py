@@ -164,7 +164,7 @@ class Constructor(Space):
         self.geom_body = np.array(geom_body)  # (G,)
         self.geom_names = tuple(geom_names)
 
-    # Size classes (`evojax_morph.physics.classes`): legs on the trunk only, then one knee and one edge
+    # Size classes (`physics.classes`): legs on the trunk only, then one knee and one edge
     # per leg, both with at most 4 legs on the trunk, then the full template. Of 20,000 random
     # 8-mutation bodies of the default space 25.4% fit the first, 73.8% the second (and not the
     # first), 0.8% only the full template; with these shares a batch of 64 to 1,024 such bodies

@@ -10,8 +10,9 @@ import dataclasses
 from pathlib import Path
 
 import jax
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
-from evojax_morph.run import plots
 from evojax_morph.spaces import make_space
 from evojax_morph.tame import TameConfig, pick_held_out, pretrain
 
@@ -48,6 +49,26 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
+def plot_history(path, history: list[dict]) -> None:
+    """The TAME classifier per generation: log-likelihood per motor and accuracy, on the bodies
+    it trains on and on held-out bodies, against chance."""
+    gens = [h["generation"] for h in history]
+    fig = Figure(figsize=(9, 3.4))
+    FigureCanvasAgg(fig)  # drawn by Agg outside pyplot: matplotlib's backend left as it was
+    axes = fig.subplots(1, 2)
+    for ax, metric in zip(axes, ("loglik", "accuracy")):
+        ax.plot(
+            gens, [h[f"train_{metric}"] for h in history], label="training bodies (their rollouts)"
+        )
+        if "held_out_" + metric in history[0]:
+            ax.plot(gens, [h[f"held_out_{metric}"] for h in history], label="held-out bodies")
+        ax.axhline(history[0][f"chance_{metric}"], color="0.5", ls="--", label="chance")
+        ax.set(xlabel="generation", ylabel="log q per motor" if metric == "loglik" else "accuracy")
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse(argv)
     space = make_space(args.space)
@@ -62,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     pre = pretrain(space, jax.random.PRNGKey(args.seed), cfg, args.population, args.generations,
                    held_out, args.epochs)
     pre.save(out)
-    plots.plot_tame_history(out / "history.png", pre.history)
+    plot_history(out / "history.png", pre.history)
     last = pre.history[-1]
     nan = float("nan")
     print(f"{len(pre.train_bodies)} distinct bodies trained on; last generation: log q per motor "
