@@ -64,13 +64,22 @@ class EvolutionEnv:
 
     def reset(self, key: jax.Array) -> tuple[Observation, EvoState]:
         """Every env at m0, its controller trained from scratch and its fitness measured."""
+        keys, morphs, params = self.first_bodies(key)
+        return self.first_evaluated(morphs, self.fitness_fn(keys, morphs, params))
+
+    def first_bodies(self, key: jax.Array):
+        """The first half of `reset`: its fitness call's arguments, (keys (N,), m0 N times,
+        fresh controllers (N, ...))."""
         key_init, key_fit = jax.random.split(key)
         morph = jax.tree.map(
             lambda x: jnp.broadcast_to(x, (self.num_envs,) + x.shape), self.space.initial()
         )
         params = jax.vmap(self.init_fn)(jax.random.split(key_init, self.num_envs))
-        out = self.fitness_fn(jax.random.split(key_fit, self.num_envs), morph, params)
-        state = self._evaluated(morph, out, jnp.zeros(self.num_envs, jnp.int32))
+        return jax.random.split(key_fit, self.num_envs), morph, params
+
+    def first_evaluated(self, morphs: Morphology, out) -> tuple[Observation, EvoState]:
+        """The second half of `reset`: m0 (`morphs`) evaluated as `out`."""
+        state = self._evaluated(morphs, out, jnp.zeros(self.num_envs, jnp.int32))
         return self.observe(state), state
 
     @staticmethod

@@ -121,17 +121,31 @@ class Proposal(NamedTuple):
     act_metrics: dict  # `Policy.act`'s metrics
 
 
+class Start(NamedTuple):
+    """What `Steps.start` leaves for `Steps.started`: m0's evaluation, as the fitness call's
+    arguments, and the keys left."""
+
+    keys: jax.Array  # (N,) the fitness call's keys
+    morphs: Morphology  # (N, ...) m0, N times
+    params: Any  # (N, ...) fresh controllers
+    key_init: jax.Array  # (n_init, 2) the keys `Policy.init` takes
+    key: jax.Array  # the agent's key for its first step
+
+
 class Steps(NamedTuple):
     """The pure, unjitted parts of an agent's loop (`make_steps`); `from_policy` jits them.
 
-    init(key) -> AgentState; propose(state) -> `Proposal`: act and mutate, no fitness call;
-    absorb(state, proposal, out) -> (state, metrics): the children evaluated as `out` (the
-    `FitnessResult` of `env.fitness_fn(proposal.keys, proposal.morphs, proposal.params)`):
-    reward, track the best, `next_evo`, learn. A step is propose -> fitness -> absorb; a study
-    (`evojax_morph.study`) evaluates several agents' proposals in one fitness call.
+    Each part that evaluates bodies is split around its one fitness call: start(key) -> `Start`
+    and started(start, out) -> AgentState make init(key); propose(state) -> `Proposal` (act
+    and mutate) and absorb(state, proposal, out) -> (state, metrics) (reward, track the best,
+    `next_evo`, learn) make a step. `out` is the `FitnessResult` of `env.fitness_fn(keys,
+    morphs, params)` of the start or proposal; a study (`evojax_morph.study`) evaluates
+    several agents' in one fitness call.
     """
 
     init: Callable
+    start: Callable
+    started: Callable
     propose: Callable
     absorb: Callable
 
@@ -140,12 +154,19 @@ def make_steps(env: EvolutionEnv, policy: Policy) -> Steps:
     """The step of `policy` on `env`, split around its one fitness call (`Steps`)."""
     n_init, n_act, n_learn, n_next = (*policy.keys, 0)[:4]
 
-    def init(key: jax.Array) -> AgentState:
+    def start(key: jax.Array) -> Start:
         keys = jax.random.split(key, n_init + 2)
-        obs, evo = env.reset(keys[n_init])
-        learner = policy.init(keys[:n_init], obs)
-        return AgentState(learner, evo, evo, keys[n_init + 1], jnp.zeros((), jnp.int32),
+        return Start(*env.first_bodies(keys[n_init]), keys[:n_init], keys[n_init + 1])
+
+    def started(first: Start, out) -> AgentState:
+        obs, evo = env.first_evaluated(first.morphs, out)
+        learner = policy.init(first.key_init, obs)
+        return AgentState(learner, evo, evo, first.key, jnp.zeros((), jnp.int32),
                           *track_best(evo))
+
+    def init(key: jax.Array) -> AgentState:
+        first = start(key)
+        return started(first, env.fitness_fn(first.keys, first.morphs, first.params))
 
     def propose(state: AgentState) -> Proposal:
         keys = jax.random.split(state.key, n_act + n_learn + n_next + 2)
@@ -178,7 +199,7 @@ def make_steps(env: EvolutionEnv, policy: Policy) -> Steps:
         metrics["bodies"] = bodies(state.evo, children)
         return new, {**metrics, **prop.act_metrics, **learn_metrics}
 
-    return Steps(init, propose, absorb)
+    return Steps(init, start, started, propose, absorb)
 
 
 def from_policy(env: EvolutionEnv, policy: Policy, mesh=None) -> Agent:
