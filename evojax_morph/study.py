@@ -28,6 +28,7 @@ import numpy as np
 
 from evojax_morph import agents
 from evojax_morph.agents.base import Policy, make_steps
+from evojax_morph.checkpoints import write_atomic
 from evojax_morph.evolution import EvolutionEnv
 from evojax_morph.fitnesses.table import signature
 from evojax_morph.pipeline import RunConfig, agent_config, build
@@ -162,9 +163,7 @@ def run_study(study: Study, key: jax.Array, num_steps: int, chunk: int,
         if resume is not None:
             kept = {**so_far, "states": to_host(states),
                     "seconds": so_far["seconds"] + time.time() - called}
-            resume.parent.mkdir(parents=True, exist_ok=True)
-            resume.with_suffix(".tmp").write_bytes(pickle.dumps(kept))
-            resume.with_suffix(".tmp").replace(resume)
+            write_atomic(resume, pickle.dumps(kept))
 
     keep()
     compiled = {}
