@@ -31,7 +31,7 @@ from evojax_morph.agents.base import Policy, make_steps
 from evojax_morph.checkpoints import write_atomic
 from evojax_morph.evolution import EvolutionEnv
 from evojax_morph.fitnesses.table import signature
-from evojax_morph.pipeline import RunConfig, agent_config, build
+from evojax_morph.pipeline import Pipeline, RunConfig, agent_config, build
 from evojax_morph.sharding import jit_replicated, to_host
 
 
@@ -58,14 +58,16 @@ class Study(NamedTuple):
 
 
 def methods_from(cfg: RunConfig, names: Sequence[str], mesh=None) -> tuple[list[Method],
-                                                                          Callable]:
-    """(methods, fitness_fn): each agent of `names` as `run` builds it under `cfg` (its
-    settings from `cfg`, `pipeline.agent_config`), all on one env of cfg.num_envs evolutions,
-    and that env's batched fitness, split across `mesh`."""
-    env = build(dataclasses.replace(cfg, agent=names[0]), mesh).env
-    methods = [Method(name, env, agents.make_policy(
-        name, env, agent_config(dataclasses.replace(cfg, agent=name), env))) for name in names]
-    return methods, env.fitness_fn
+                                                                          Pipeline]:
+    """(methods, pipeline): each agent of `names` as `run` builds it under `cfg` (its
+    settings from `cfg`, `pipeline.agent_config`), all on the env of cfg.num_envs evolutions
+    of the pipeline `build` makes of `cfg` with the first agent (its space, fitness config and
+    batched fitness, split across `mesh`)."""
+    p = build(dataclasses.replace(cfg, agent=names[0]), mesh)
+    methods = [Method(name, p.env, agents.make_policy(
+        name, p.env, agent_config(dataclasses.replace(cfg, agent=name), p.env)))
+        for name in names]
+    return methods, p
 
 
 def evaluate_together(fitness_fn: Callable, batches: Sequence[tuple]) -> list:

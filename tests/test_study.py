@@ -1,12 +1,15 @@
 """A study as one batched program (issue 63), on Bad Walker's table fitness (deterministic, no
 training): each method's seeds run as its agent runs them alone, in one fitness call a step."""
 
+import json
+
 import jax
 import numpy as np
 import pytest
 
 from evojax_morph import agents, study
 from evojax_morph.pipeline import RunConfig
+from experiments import crawler_study
 
 METHODS = ("ddqn", "a2c", "random", "regularized_evolution", "evolution")
 N, SEEDS, STEPS = 4, 2, 4  # a step: 5 methods x 2 seeds x 4 children, one call of 40
@@ -17,7 +20,8 @@ def make(names, calls=None):
     list, its fitness appends each call's batch size as it is traced."""
     cfg = RunConfig(space="bad_walker", fitness="table", num_envs=N, horizon=3,
                     explore_steps=2, learning_starts=N)
-    methods, fitness_fn = study.methods_from(cfg, names)
+    methods, p = study.methods_from(cfg, names)
+    fitness_fn = p.env.fitness_fn
 
     def counted(*args):
         calls.append(len(args[0]))
@@ -82,3 +86,27 @@ def test_the_baselines_run_as_alone_and_resume_as_one_go(tmp_path):
 @pytest.mark.slow  # 166 s cold on 2 shared cores: the learners' programs, alone and together
 def test_every_method_runs_as_alone_and_resumes_as_one_go(tmp_path):
     runs_as_alone(METHODS, tmp_path)
+
+
+def test_every_run_and_body_confirms_with_keys_of_its_own():
+    """No two runs (method, seed) of the study, nor two returned bodies of a run, share a
+    confirming key; a body's controllers each take their own."""
+    keys = [crawler_study.confirm_keys(m, seed, body, 16) for m in METHODS
+            for seed in range(10) for body in range(3)]
+    assert len({tuple(np.asarray(k)) for ks in keys for k in ks}) == len(METHODS) * 10 * 3 * 16
+
+
+@pytest.mark.slow  # 65 s cold: the five agents on Bad Walker's table, confirmed
+def test_the_toy_study_leaves_every_method_its_seeds_at_equal_evaluations(tmp_path):
+    """`python -m experiments.crawler_study --toy`: every method's seeds, each with its returned
+    body confirmed, equal evaluations, the curve and the distinct bodies; the figure."""
+    crawler_study.main(["--toy", "--out", str(tmp_path)])
+    data = json.loads((tmp_path / "study_bad_walker_distance.json").read_text())
+    assert set(data["runs"]) == set(METHODS) and data["evaluations_per_call"] == 5 * 2 * 4
+    for r in data["runs"].values():
+        assert len(r["returned"]) == len(r["distinct_bodies"]) == data["seeds"] == 2
+        assert r["curve"][-1]["evaluations"] == data["evaluations_per_run"] == 4 * 6
+        assert all(len(p["confirmed"]) == 2 for p in r["curve"])
+        assert {"distance", "upright", "upright_whole"} <= set(r["returned"][0])
+    assert all("p_holm" in d for d in data["effects"]["differences"].values())
+    assert (tmp_path / "study_bad_walker_distance.png").stat().st_size > 0
