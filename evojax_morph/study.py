@@ -9,7 +9,7 @@ keys (tests/test_study.py, on the table fitness, bit for bit), and the methods s
 each other. The fitness sees one flat world axis, never a vmap inside a vmap (MuJoCo Warp's
 call needs that), and a GPU gets calls as full as the study is wide.
 
-`make_study` gives the jitted `init(key)` and `chunk(states, num_steps)` (one `lax.scan`);
+`make_study` gives the jitted `init(keys)` and `chunk(states, num_steps)` (one `lax.scan`);
 `run_study` is the host's loop: chunks, each followed by an atomic save, resumed from the file.
 """
 
@@ -44,8 +44,8 @@ class Method(NamedTuple):
 
 
 class Study(NamedTuple):
-    """init(key) -> states, {method: AgentState (S, ...)}: seed s of every method starts from
-    split(key, S)[s], as `from_policy`'s `init` would alone. chunk(states, num_steps) ->
+    """init(keys (S,)) -> states, {method: AgentState (S, ...)}: seed s of every method starts
+    from keys[s], as `from_policy`'s `init(keys[s])` would alone. chunk(states, num_steps) ->
     (states, metrics): {method: its agent's metrics (num_steps, S, ...), "bodies" left out,
     with "signature" (num_steps, S, N_m, 2) uint32: each child's `table.signature`}.
     evaluations: bodies a study step evaluates (one fitness call): sum_m S x N_m."""
@@ -102,8 +102,7 @@ def make_study(methods: Sequence[Method], seeds: int, fitness_fn: Callable | Non
     over_seeds = lambda fn: jax.vmap(fn)  # noqa: E731
     args = lambda b: (b.keys, b.morphs, b.params)  # noqa: E731
 
-    def init(key: jax.Array) -> dict:
-        keys = jax.random.split(key, seeds)
+    def init(keys: jax.Array) -> dict:
         starts = [over_seeds(s.start)(keys) for s in steps]
         outs = evaluate_together(fitness_fn, [args(b) for b in starts])
         return {m.name: over_seeds(s.started)(b, out)
@@ -132,10 +131,11 @@ def make_study(methods: Sequence[Method], seeds: int, fitness_fn: Callable | Non
     return Study(init, chunk, names, seeds, evaluations)
 
 
-def run_study(study: Study, key: jax.Array, num_steps: int, chunk: int,
+def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
               resume: Path | None = None, deadline: float | None = None,
               on_chunk: Callable | None = None) -> dict | None:
-    """The study's host loop: `num_steps` steps in chunks of `chunk`, resumable.
+    """The study's host loop from the seeds' `keys` (S,): `num_steps` steps in chunks of
+    `chunk`, resumable.
 
     With `resume`, the states and metrics so far are saved there after the start and after
     every chunk (a pickle, written beside and renamed over: a call stopped mid-write leaves
@@ -153,7 +153,7 @@ def run_study(study: Study, key: jax.Array, num_steps: int, chunk: int,
     so_far = pickle.loads(resume.read_bytes()) if resume and resume.exists() else None
     if so_far is None:
         start = time.perf_counter()
-        states = jax.block_until_ready(study.init(key))
+        states = jax.block_until_ready(study.init(keys))
         so_far = {"metrics": [], "at_chunks": [], "chunk_seconds": [], "chunk_steps": [],
                   "done": 0, "seconds": 0.0, "init_seconds": time.perf_counter() - start}
         if on_chunk is not None:

@@ -12,10 +12,14 @@ in, so no two runs share a measurement); the best confirmed body of the whole st
 --best-controllers. Methods are compared on the returned bodies' confirmed means with Welch
 95% intervals, Holm-corrected (`reproduce.compare_effects`).
 
-Each stage keeps its state under --data and resumes where it stopped: run the same command
-again until it says the study is done. Writes OUT/study_SPACE_TASK.json (the data file) and
-.png (confirmed fitness against evaluations spent, a band over seeds per method; distinct
-bodies each method visited).
+A call runs the part of the seeds [--first-seed, --first-seed + --seeds) (seed s starts from
+fold_in(PRNGKey(0), s) in any part) and resumes where it stopped: the agents' states after
+every chunk in DATA/seeds_A-B/state.pkl (hundreds of MB on the Crawler: they stay on the
+machine that ran them), the confirmations as they come. A finished part leaves
+DATA/seeds_A-B/results.pkl (small, no agent state: it travels), and every call ends by making
+the data file OUT/study_SPACE_TASK.json and its figure (.png: confirmed fitness against
+evaluations spent, a band over seeds per method; distinct bodies each run visited) from every
+finished part under DATA. Run the same command again until it says its seeds are done.
 
   python -m experiments.crawler_study --physics warp   # GPU: experiments/README.md
   python -m experiments.crawler_study --toy --out /tmp/cs   # CPU smoke, about a minute
@@ -39,7 +43,7 @@ import numpy as np
 import evojax_morph as em
 from evojax_morph import study
 from evojax_morph.checkpoints import write_atomic
-from evojax_morph.pipeline import agent_config
+from evojax_morph.pipeline import agent_config, build
 from experiments.build_tables import revision
 from experiments.common import Setup, band, plt, run_config, save
 from experiments.reproduce import COMPARED, compare_effects
@@ -63,24 +67,60 @@ def setup_of(args) -> Setup:
                  chunk=args.chunk, hidden=args.hidden, physics=args.physics)
 
 
-def run_the_study(args, deadline: float):
-    """Runs (or resumes) the study; (its `run_study` result or None past the deadline, the
-    pipeline, the methods)."""
+def seed_keys(seeds: range) -> jax.Array:
+    """(S,) the runs' keys: seed s of every method starts from fold_in(PRNGKey(0), s), whichever
+    part of the seeds a call runs."""
+    return jnp.stack([jax.random.fold_in(jax.random.PRNGKey(STUDY_SEED), s) for s in seeds])
+
+
+def run_part(args, seeds: range, part: Path, deadline: float) -> dict | None:
+    """Runs (or resumes) the study of `seeds`, confirms its runs' returned bodies and keeps
+    what the data file needs in PART/results.pkl (small: no agent state); None past the
+    deadline. The agents' states (PART/state.pkl, hundreds of MB on the Crawler) stay where
+    the call ran."""
     cfg = run_config(args.methods[0], setup_of(args))
     methods, p = study.methods_from(cfg, args.methods)
-    s = study.make_study(methods, args.seeds)
+    s = study.make_study(methods, len(seeds))
 
     def best(states, done):
         del done
-        return {"best": study.best_bodies(states),
-                "best_fitness": {m: np.asarray(st.best_fitness) for m, st in states.items()}}
+        return {"best": study.best_bodies(states)}
 
-    res = study.run_study(s, jax.random.PRNGKey(STUDY_SEED), args.steps, args.chunk,
-                          resume=args.data / "study.pkl", deadline=deadline, on_chunk=best)
-    return res, p, methods, s
+    res = study.run_study(s, seed_keys(seeds), args.steps, args.chunk,
+                          resume=part / "state.pkl", deadline=deadline, on_chunk=best)
+    if res is None:
+        return None
+    print(f"seeds {seeds.start} to {seeds.stop - 1}: {s.evaluations} evaluations a call, "
+          f"{res['evaluations_per_second']:.1f} evaluations/s over its chunks", flush=True)
+    bodies = returned_bodies(p.space, res, seeds, args)
+    confirmed = confirm_all(p.space, p.fitness, bodies, part / "confirmed.pkl", args, deadline)
+    if confirmed is None:
+        return None
+    runs = []
+    for m in methods:
+        for i, seed in enumerate(seeds):
+            mine = [(b, c) for b, c in zip(bodies, confirmed["found"], strict=True)
+                    if (b["method"], b["seed"]) == (m.name, seed)]
+            settings = agent_config(run_config(m.name, setup_of(args)), m.env)
+            runs.append({
+                "method": m.name, "seed": seed,
+                "agent_settings": dataclasses.asdict(settings) if settings is not None else {},
+                "returned": next(c for b, c in mine if args.steps * args.num_envs in b["at"]),
+                "returned_draw": float(res["states"][m.name].best_fitness[i]),
+                "curve": sorted((e, c["mean"]) for b, c in mine for e in b["at"]),
+                "distinct_bodies": distinct_bodies(res["metrics"][m.name]["signature"])[i],
+                "candidates": [(c["mean"], b["morph"], c["body"]) for b, c in mine]})
+    device = jax.devices()[0]
+    results = {"seeds": list(seeds), "runs": runs, "evaluations_per_call": s.evaluations,
+               "evaluations_per_second": res["evaluations_per_second"],
+               "study_seconds": res["seconds"], "confirm_seconds": confirmed["seconds"],
+               "device": f"{device.platform}: {device.device_kind}", "revision": revision(),
+               "task": p.fitness.task.name}
+    write_atomic(part / "results.pkl", pickle.dumps(results))
+    return results
 
 
-def returned_bodies(space, res, args) -> list[dict]:
+def returned_bodies(space, res, seeds: range, args) -> list[dict]:
     """Every (method, seed)'s returned body at each curve point (every --curve-every
     evaluations, and the end), equal bodies of a run confirmed once: [{method, seed,
     index (its distinct bodies' order), morph, at: [evaluations]}]."""
@@ -90,10 +130,10 @@ def returned_bodies(space, res, args) -> list[dict]:
               or a["steps"] == args.steps]
     found = []
     for m in args.methods:
-        for seed in range(args.seeds):
+        for i, seed in enumerate(seeds):
             mine = {}
             for a in points:
-                morph = jax.tree.map(lambda x, s=seed: np.asarray(x[s]), a["best"][m])
+                morph = jax.tree.map(lambda x, i=i: np.asarray(x[i]), a["best"][m])
                 name = space.canonical(morph)
                 if name not in mine:
                     mine[name] = {"method": m, "seed": seed, "index": len(mine), "body": name,
@@ -103,10 +143,11 @@ def returned_bodies(space, res, args) -> list[dict]:
     return found
 
 
-def confirm_all(space, fit_cfg, bodies: list[dict], args, deadline: float) -> list | None:
+def confirm_all(space, fit_cfg, bodies: list[dict], path: Path, args,
+                deadline: float) -> dict | None:
     """em.confirm of every body of `bodies` with its run's own keys, --confirm-batch bodies a
-    call, each batch saved (DATA/confirmed.pkl): resumes; None past the deadline."""
-    path, c = args.data / "confirmed.pkl", args.confirm_controllers
+    call, each batch saved (`path`): resumes; None past the deadline."""
+    c = args.confirm_controllers
     done = pickle.loads(path.read_bytes()) if path.exists() else {"found": [], "seconds": 0.0}
     while len(done["found"]) < len(bodies):
         if time.time() > deadline:
@@ -136,67 +177,64 @@ def distinct_bodies(signatures: np.ndarray) -> list[int]:
     return [len(np.unique(s, axis=0)) for s in per_seed]
 
 
-def summary(res, p, s, methods, bodies, confirmed, best, args) -> dict:
-    """The data file: settings, cost, each run's confirmed returned bodies, the effects."""
-    device = jax.devices()[0]
-    n = args.num_envs
-    by_run = {}
-    for b, c in zip(bodies, confirmed["found"], strict=True):
-        by_run.setdefault((b["method"], b["seed"]), []).append((b, c))
+def confirm_best(space, fit_cfg, runs: list[dict], args) -> dict:
+    """The best confirmed body of the whole study (every part present), confirmed again by
+    --best-controllers with keys of their own (DATA/best.pkl, again if the best changed)."""
+    path = args.data / "best.pkl"
+    mean, morph, name, run = max(((*c, r) for r in runs for c in r["candidates"]),
+                                 key=lambda x: x[0])
+    if path.exists() and (best := pickle.loads(path.read_bytes()))["entry"]["body"] == name:
+        return best
+    start = time.time()
+    key = jax.random.fold_in(jax.random.PRNGKey(CONFIRM_SEED), zlib.crc32(b"best"))
+    (c,) = em.confirm(space, em.stack([morph]), key, fit_cfg, args.best_controllers)
+    best = {"entry": {**entry(c), "method": run["method"], "seed": run["seed"]},
+            "seconds": time.time() - start}
+    write_atomic(path, pickle.dumps(best))
+    return best
+
+
+def summary(parts: list[dict], best: dict, args) -> dict:
+    """The data file from every part's results: settings, cost, each run's confirmed returned
+    bodies along the run, the effects (Holm) and the best body."""
+    n, seeds = args.num_envs, sorted(s for p in parts for s in p["seeds"])
     runs = {}
-    for m in methods:
-        mine = [by_run[(m.name, s)] for s in range(args.seeds)]
-        final = [next(c for b, c in run if args.steps * n in b["at"]) for run in mine]
-        points = sorted({e for run in mine for b, _ in run for e in b["at"]})
-        curve = [{"evaluations": e, "confirmed": [next(c["mean"] for b, c in run if e in b["at"])
-                                                  for run in mine]} for e in points]
-        settings = agent_config(run_config(m.name, setup_of(args)), m.env)
-        runs[m.name] = {
-            "agent": m.name, "seeds": args.seeds,
-            "agent_settings": dataclasses.asdict(settings) if settings is not None else {},
-            "returned": final,
-            "returned_draw": res["states"][m.name].best_fitness.tolist(),
-            "curve": curve,
-            "distinct_bodies": distinct_bodies(res["metrics"][m.name]["signature"]),
+    for m in args.methods:
+        mine = sorted((r for p in parts for r in p["runs"] if r["method"] == m),
+                      key=lambda r: r["seed"])
+        points = sorted({e for r in mine for e, _ in r["curve"]})
+        runs[m] = {
+            "agent": m, "seeds": len(mine), "agent_settings": mine[0]["agent_settings"],
+            "returned": [r["returned"] for r in mine],
+            "returned_draw": [r["returned_draw"] for r in mine],
+            "curve": [{"evaluations": e, "confirmed": [dict(r["curve"])[e] for r in mine]}
+                      for e in points],
+            "distinct_bodies": [r["distinct_bodies"] for r in mine],
         }
+    study_seconds = sum(p["study_seconds"] for p in parts)
+    confirm_seconds = sum(p["confirm_seconds"] for p in parts) + best["seconds"]
     return {
-        "space": args.space, "task": p.fitness.task.name,
+        "space": args.space, "task": parts[0]["task"],
         "fitness": {"kind": args.fitness, "controllers": 1,
                     "train_steps": args.train_steps if args.fitness == "ppo" else None,
                     "inheritance": args.fitness == "ppo"},
-        "physics": args.physics, "agents": list(args.methods), "seeds": args.seeds,
-        "evaluations_per_run": n * args.steps, "start_evaluations_per_run": n,
-        "num_envs": n, "steps": args.steps, "chunk": args.chunk,
-        "evaluations_per_call": s.evaluations,
-        "evaluations_per_second": res["evaluations_per_second"],
-        "device": f"{device.platform}: {device.device_kind}",
-        "device_seconds": round(res["seconds"] + confirmed["seconds"] + best["seconds"], 1),
-        "study_seconds": round(res["seconds"], 1),
-        "confirm_seconds": round(confirmed["seconds"] + best["seconds"], 1),
+        "physics": args.physics, "agents": list(args.methods), "seeds": len(seeds),
+        "seed_indices": seeds, "evaluations_per_run": n * args.steps,
+        "start_evaluations_per_run": n, "num_envs": n, "steps": args.steps, "chunk": args.chunk,
+        "parts": [{k: p[k] for k in ("seeds", "evaluations_per_call", "evaluations_per_second",
+                                     "study_seconds", "confirm_seconds", "device", "revision")}
+                  for p in parts],
+        "device": parts[0]["device"],
+        "device_seconds": round(study_seconds + confirm_seconds, 1),
+        "study_seconds": round(study_seconds, 1), "confirm_seconds": round(confirm_seconds, 1),
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "revision": revision(),
         "confirm_controllers": args.confirm_controllers,
         "confirm_keys": f"split(fold_in(fold_in(fold_in(PRNGKey({CONFIRM_SEED}), "
                         "crc32(method)), seed), body index in the run), controllers)",
-        "runs": runs, "effects": compare_effects(runs), "best": best["entry"],
+        "runs": runs, "best": best["entry"],  # the effects need 2 seeds a method
+        "effects": compare_effects(runs) if len(seeds) > 1 else None,
     }
-
-
-def confirm_best(space, fit_cfg, confirmed, bodies, args) -> dict:
-    """The best confirmed body of the whole study, confirmed again by --best-controllers with
-    keys of its own (DATA/best.pkl)."""
-    path = args.data / "best.pkl"
-    if path.exists():
-        return pickle.loads(path.read_bytes())
-    start = time.time()
-    i = int(np.argmax([c["mean"] for c in confirmed["found"]]))
-    b = bodies[i]
-    key = jax.random.fold_in(jax.random.PRNGKey(CONFIRM_SEED), zlib.crc32(b"best"))
-    (c,) = em.confirm(space, em.stack([b["morph"]]), key, fit_cfg, args.best_controllers)
-    best = {"entry": {**entry(c), "method": b["method"], "seed": b["seed"]},
-            "seconds": time.time() - start}
-    write_atomic(path, pickle.dumps(best))
-    return best
 
 
 def draw(data: dict, out: Path, name: str) -> None:
@@ -228,7 +266,9 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add = parser.add_argument
     add("--methods", nargs="+", default=list(COMPARED), help="registered agents")
-    add("--seeds", type=int, default=10)
+    add("--seeds", type=int, help="runs a method in this part (default 10; --toy 2)")
+    add("--first-seed", type=int, default=0,
+        help="the part's first seed: a study too long for one machine runs in parts of seeds")
     add("--num-envs", type=int, default=64, help="evolutions a run (N a step)")
     add("--steps", type=int, default=40, help="steps a run (N x steps evaluations)")
     add("--chunk", type=int, default=2, help="steps a compiled call (state saved after each)")
@@ -251,27 +291,25 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.toy:
         args.space, args.fitness, args.task, args.physics = "bad_walker", "table", "", "jax"
-        args.seeds, args.num_envs, args.steps, args.chunk = 2, 4, 6, 2
+        args.num_envs, args.steps, args.chunk = 4, 6, 2
         args.confirm_controllers, args.best_controllers, args.curve_every = 2, 4, 8
+    args.seeds = args.seeds or (2 if args.toy else 10)
     args.data = args.data or (args.out / "crawler_study" if args.toy
                               else Path("docs/figures/crawler_study"))
     deadline = time.time() + args.budget
-    args.data.mkdir(parents=True, exist_ok=True)
-    res, p, methods, s = run_the_study(args, deadline)
-    if res is None:
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
+    part = args.data / f"seeds_{seeds.start}-{seeds.stop - 1}"
+    part.mkdir(parents=True, exist_ok=True)
+    if not (part / "results.pkl").exists() and run_part(args, seeds, part, deadline) is None:
         print("not done: run the same command again", flush=True)
         return 0
-    print(f"study: {s.evaluations} evaluations a call, {res['evaluations_per_second']:.1f} "
-          f"evaluations/s over its chunks", flush=True)
-    bodies = returned_bodies(p.space, res, args)
-    confirmed = confirm_all(p.space, p.fitness, bodies, args, deadline)
-    if confirmed is None:
-        print("not done: run the same command again", flush=True)
-        return 0
-    best = confirm_best(p.space, p.fitness, confirmed, bodies, args)
-    data = summary(res, p, s, methods, bodies, confirmed, best, args)
+    parts = [pickle.loads(f.read_bytes()) for f in sorted(args.data.glob("seeds_*/results.pkl"))]
+    space = em.make_space(args.space)
+    cfg = build(run_config(args.methods[0], setup_of(args))).fitness  # the confirmations'
+    best = confirm_best(space, cfg, [r for p in parts for r in p["runs"]], args)
+    data = summary(parts, best, args)
     draw(data, args.out, f"study_{args.space}_{data['task']}")
-    print("the study is done", flush=True)
+    print(f"the study's seeds {data['seed_indices']} are done", flush=True)
     return 0
 
 

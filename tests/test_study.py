@@ -33,7 +33,7 @@ def make(names, calls=None):
 def test_one_fitness_call_a_step_for_every_method_and_seed():
     calls = []
     _, s = make(METHODS, calls)
-    states = jax.eval_shape(s.init, jax.random.PRNGKey(0))
+    states = jax.eval_shape(s.init, jax.random.split(jax.random.PRNGKey(0), SEEDS))
     assert calls == [len(METHODS) * SEEDS * N]  # the start: m0 of every run, one call
     calls.clear()
     _, metrics = jax.eval_shape(lambda st: s.chunk(st, 3), states)
@@ -47,21 +47,20 @@ def test_one_fitness_call_a_step_for_every_method_and_seed():
 
 def runs_as_alone(names, tmp_path):
     """Seed s of each method in the study against its agent (`from_policy`) run alone from
-    split(key, S)[s] (its seeds vmapped, as `experiments.common.run_agent` runs them): the
+    keys[s] (its seeds vmapped, as `experiments.common.run_agent` runs them): the
     bodies, their fitness, rewards, actions and the best bit for bit; a learner's floats
     within float rounding (XLA fuses the study's one program apart from the agent's own, so a
     Q-network's weights differ in the 7th digit). And the same study resumed from its file
     after 2 steps against one go of 4, bit for bit."""
     methods, s = make(names)
-    key = jax.random.PRNGKey(3)
-    whole = study.run_study(s, key, STEPS, chunk=2)
-    study.run_study(s, key, 2, chunk=2, resume=tmp_path / "s.pkl")  # a call that stops
-    resumed = study.run_study(s, key, STEPS, chunk=2, resume=tmp_path / "s.pkl")
+    keys = jax.random.split(jax.random.PRNGKey(3), SEEDS)
+    whole = study.run_study(s, keys, STEPS, chunk=2)
+    study.run_study(s, keys, 2, chunk=2, resume=tmp_path / "s.pkl")  # a call that stops
+    resumed = study.run_study(s, keys, STEPS, chunk=2, resume=tmp_path / "s.pkl")
     for a, b in zip(jax.tree.leaves((whole["states"], whole["metrics"])),
                     jax.tree.leaves((resumed["states"], resumed["metrics"]))):
         np.testing.assert_array_equal(a, b)
     assert whole["evaluations_per_second"] > 0
-    keys = jax.random.split(key, SEEDS)
     for m in methods:
         agent = agents.from_policy(m.env, m.policy)
         state, metrics = jax.jit(jax.vmap(lambda k, a=agent: a.chunk(a.init(k), STEPS)))(keys)
@@ -102,7 +101,8 @@ def test_the_toy_study_leaves_every_method_its_seeds_at_equal_evaluations(tmp_pa
     body confirmed, equal evaluations, the curve and the distinct bodies; the figure."""
     crawler_study.main(["--toy", "--out", str(tmp_path)])
     data = json.loads((tmp_path / "study_bad_walker_distance.json").read_text())
-    assert set(data["runs"]) == set(METHODS) and data["evaluations_per_call"] == 5 * 2 * 4
+    assert set(data["runs"]) == set(METHODS) and data["seed_indices"] == [0, 1]
+    assert [p["evaluations_per_call"] for p in data["parts"]] == [5 * 2 * 4]  # one part
     for r in data["runs"].values():
         assert len(r["returned"]) == len(r["distinct_bodies"]) == data["seeds"] == 2
         assert r["curve"][-1]["evaluations"] == data["evaluations_per_run"] == 4 * 6
