@@ -270,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
     add("--first-seed", type=int, default=0,
         help="the part's first seed: a study too long for one machine runs in parts of seeds")
     add("--num-envs", type=int, default=64, help="evolutions a run (N a step)")
-    add("--steps", type=int, default=40, help="steps a run (N x steps evaluations)")
+    add("--steps", type=int, default=32, help="steps a run (N x steps evaluations)")
     add("--chunk", type=int, default=2, help="steps a compiled call (state saved after each)")
     add("--space", default="crawler")
     add("--task", default="walk", choices=em.list_tasks())
@@ -282,7 +282,7 @@ def main(argv: list[str] | None = None) -> int:
     add("--best-controllers", type=int, default=32)
     add("--curve-every", type=int, default=512, help="evaluations between curve points")
     add("--confirm-batch", type=int, default=256, help="bodies a confirming call")
-    add("--budget", type=float, default=480,
+    add("--budget", type=float, default=420,
         help="seconds: start no chunk or confirming call after this")
     add("--data", type=Path, help="the study's state (default: docs/figures/crawler_study; "
         "with --toy, OUT/crawler_study)")
