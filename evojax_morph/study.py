@@ -78,10 +78,9 @@ def evaluate_together(fitness_fn: Callable, batches: Sequence[tuple]) -> list:
     flat = [jax.tree.map(lambda x, k=k: x.reshape((k, *x.shape[2:])), b)
             for b, k in zip(batches, sizes)]
     out = fitness_fn(*jax.tree.map(lambda *xs: jnp.concatenate(xs), *flat))
-    edges = np.cumsum(sizes)[:-1].tolist()
-    parts = [jax.tree.map(lambda x, i=i: jnp.split(x, edges)[i], out) for i in range(len(sizes))]
-    return [jax.tree.map(lambda x, sh=sh: x.reshape((*sh, *x.shape[1:])), part)
-            for part, sh in zip(parts, shapes)]
+    ends = np.cumsum(sizes).tolist()
+    return [jax.tree.map(lambda x, a=end - k, b=end, sh=sh: x[a:b].reshape((*sh, *x.shape[1:])),
+                         out) for k, end, sh in zip(sizes, ends, shapes)]
 
 
 def make_study(methods: Sequence[Method], seeds: int, fitness_fn: Callable | None = None,
@@ -99,24 +98,23 @@ def make_study(methods: Sequence[Method], seeds: int, fitness_fn: Callable | Non
         raise ValueError(f"a study's methods need distinct names, got {names}")
     fitness_fn = fitness_fn or methods[0].env.fitness_fn
     steps = [make_steps(m.env, m.policy) for m in methods]
-    over_seeds = lambda fn: jax.vmap(fn)  # noqa: E731
     args = lambda b: (b.keys, b.morphs, b.params)  # noqa: E731
 
     def init(keys: jax.Array) -> dict:
-        starts = [over_seeds(s.start)(keys) for s in steps]
+        starts = [jax.vmap(s.start)(keys) for s in steps]
         outs = evaluate_together(fitness_fn, [args(b) for b in starts])
-        return {m.name: over_seeds(s.started)(b, out)
+        return {m.name: jax.vmap(s.started)(b, out)
                 for m, s, b, out in zip(methods, steps, starts, outs)}
 
     def step(states: dict, _):
         # PROPOSE: every method's seeds act and mutate
-        props = [over_seeds(s.propose)(states[m.name]) for m, s in zip(methods, steps)]
+        props = [jax.vmap(s.propose)(states[m.name]) for m, s in zip(methods, steps)]
         # EVALUATE every child of the study in one fitness call
         outs = evaluate_together(fitness_fn, [args(p) for p in props])
         # ABSORB: each method's seeds learn from their own children
         new, metrics = {}, {}
         for m, s, p, out in zip(methods, steps, props, outs):
-            new[m.name], mm = over_seeds(s.absorb)(states[m.name], p, out)
+            new[m.name], mm = jax.vmap(s.absorb)(states[m.name], p, out)
             mm = {k: v for k, v in mm.items() if k != "bodies"}
             mm["signature"] = jax.vmap(jax.vmap(signature))(p.morphs)
             metrics[m.name] = mm
