@@ -64,13 +64,22 @@ class EvolutionEnv:
 
     def reset(self, key: jax.Array) -> tuple[Observation, EvoState]:
         """Every env at m0, its controller trained from scratch and its fitness measured."""
+        keys, morphs, params = self.first_bodies(key)
+        return self.first_evaluated(morphs, self.fitness_fn(keys, morphs, params))
+
+    def first_bodies(self, key: jax.Array):
+        """The first half of `reset`: its fitness call's arguments, (keys (N,), m0 N times,
+        fresh controllers (N, ...))."""
         key_init, key_fit = jax.random.split(key)
         morph = jax.tree.map(
             lambda x: jnp.broadcast_to(x, (self.num_envs,) + x.shape), self.space.initial()
         )
         params = jax.vmap(self.init_fn)(jax.random.split(key_init, self.num_envs))
-        out = self.fitness_fn(jax.random.split(key_fit, self.num_envs), morph, params)
-        state = self._evaluated(morph, out, jnp.zeros(self.num_envs, jnp.int32))
+        return jax.random.split(key_fit, self.num_envs), morph, params
+
+    def first_evaluated(self, morphs: Morphology, out) -> tuple[Observation, EvoState]:
+        """The second half of `reset`: m0 (`morphs`) evaluated as `out`."""
+        state = self._evaluated(morphs, out, jnp.zeros(self.num_envs, jnp.int32))
         return self.observe(state), state
 
     @staticmethod
@@ -88,12 +97,24 @@ class EvolutionEnv:
         Returns (obs, state, reward, terminated, truncated, info); an env whose episode ended
         is not reset here: `auto_reset` does that, so a caller can see the final state.
         """
+        keys, morphs, params = self.children(key, state, action)
+        return self.evaluated(state, action, morphs, self.fitness_fn(keys, morphs, params))
+
+    def children(self, key: jax.Array, state: EvoState, action: jax.Array):
+        """The first half of `step`: the fitness call's arguments, (keys (N,), the children's
+        morphs (N, ...), the controllers they inherit (N, ...)). A study (`study`) evaluates
+        several envs' children in one call."""
         nm = self.space.num_mutations
         valid = jnp.maximum(action, 0)
         mutated = jax.vmap(self.space.mutate)(state.morph, valid // nm, valid % nm)
         child = tree_select(action == REMEASURE, state.morph, mutated)
-        out = self.fitness_fn(jax.random.split(key, self.num_envs), child, state.params)
-        new = self._evaluated(child, out, state.steps + 1)
+        return jax.random.split(key, self.num_envs), child, state.params
+
+    def evaluated(self, state: EvoState, action: jax.Array, morphs: Morphology, out):
+        """The second half of `step`: the children `morphs` of `action`, evaluated as `out`
+        (the `FitnessResult` of `children`'s arguments) -> `step`'s returns."""
+        del action  # what a subclass may check (tests/test_agent.py's RootOnlyEnv)
+        new = self._evaluated(morphs, out, state.steps + 1)
         terminated = new.steps >= self.horizon
         truncated = jnp.zeros_like(terminated)
         return self.observe(new), new, new.fitness - state.fitness, terminated, truncated, {}

@@ -20,6 +20,7 @@ import numpy as np
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from evojax_morph.run.checkpoints import write_atomic  # noqa: E402
 from evojax_morph.run.pipeline import RunConfig, build  # noqa: E402
 
 
@@ -96,9 +97,7 @@ def run_agent(agent: str, setup: Setup, seeds: int, resume: Path | None = None,
         if resume is not None:
             kept = {**so_far, "states": jax.device_get(states),
                     "seconds": so_far["seconds"] + time.time() - called}
-            resume.parent.mkdir(parents=True, exist_ok=True)
-            resume.with_suffix(".tmp").write_bytes(pickle.dumps(kept))
-            resume.with_suffix(".tmp").replace(resume)
+            write_atomic(resume, pickle.dumps(kept))
 
     keep()
     step_fns = {}

@@ -209,9 +209,10 @@ class RootOnlyEnv(EvolutionEnv):
             mask=obs.mask & (jnp.arange(obs.mask.shape[1]) < self.space.num_mutations)
         )
 
-    def step(self, key, state, action):
+    def evaluated(self, state, action, morphs, out):
         valid = self.observe(state).mask[jnp.arange(self.num_envs), action] | (action == REMEASURE)
-        obs, new, reward, terminated, truncated, info = super().step(key, state, action)
+        obs, new, reward, terminated, truncated, info = super().evaluated(
+            state, action, morphs, out)
         return obs, new, jnp.where(valid, reward, jnp.nan), terminated, truncated, info
 
 

@@ -1,8 +1,10 @@
 """The skeleton every agent shares: its state, `init`, and the scanned, replicated step loop.
 
 An agent states only how it acts and how it learns (a `Policy`); `from_policy` wraps that in the
-loop observe -> act -> env.step -> track the best body -> restart ended episodes -> learn, run
-`num_steps` times in one jitted `lax.scan` per chunk.
+loop observe -> act -> mutate -> evaluate (one fitness call) -> track the best body -> restart
+ended episodes -> learn, run `num_steps` times in one jitted `lax.scan` per chunk. `make_steps`
+gives the loop's step split around its fitness call, for a study that evaluates several agents'
+children in one call (`evojax_morph.run.study`).
 """
 
 from __future__ import annotations
@@ -104,19 +106,69 @@ class Agent(NamedTuple):
     scores: Callable | None
 
 
-def from_policy(env: EvolutionEnv, policy: Policy, mesh=None) -> Agent:
-    """The jitted agent of `policy` on `env`, its state replicated on `mesh` (default: every
-    device; the fitness inside splits its batch across them)."""
+class Proposal(NamedTuple):
+    """What a step's first half (`Steps.propose`) leaves for its second (`Steps.absorb`): the
+    children to evaluate, as the fitness call's arguments, and what acting chose."""
+
+    keys: jax.Array  # (N,) the fitness call's keys
+    morphs: Morphology  # (N, ...) the children
+    params: Any  # (N, ...) the controllers they inherit
+    obs: Observation  # (N, ...) what the agent acted on
+    action: jax.Array  # (N,) int32
+    key_learn: jax.Array  # (n_learn, 2) the keys `Policy.learn` takes
+    key_next: jax.Array  # (n_next, 2) the keys `Policy.next_evo` takes
+    key: jax.Array  # the agent's key for the step after
+    act_metrics: dict  # `Policy.act`'s metrics
+
+
+class Start(NamedTuple):
+    """What `Steps.start` leaves for `Steps.started`: m0's evaluation, as the fitness call's
+    arguments, and the keys left."""
+
+    keys: jax.Array  # (N,) the fitness call's keys
+    morphs: Morphology  # (N, ...) m0, N times
+    params: Any  # (N, ...) fresh controllers
+    key_init: jax.Array  # (n_init, 2) the keys `Policy.init` takes
+    key: jax.Array  # the agent's key for its first step
+
+
+class Steps(NamedTuple):
+    """The pure, unjitted parts of an agent's loop (`make_steps`); `from_policy` jits them.
+
+    Each part that evaluates bodies is split around its one fitness call: start(key) -> `Start`
+    and started(start, out) -> AgentState make init(key); propose(state) -> `Proposal` (act
+    and mutate) and absorb(state, proposal, out) -> (state, metrics) (reward, track the best,
+    `next_evo`, learn) make a step. `out` is the `FitnessResult` of `env.fitness_fn(keys,
+    morphs, params)` of the start or proposal; a study (`evojax_morph.run.study`) evaluates
+    several agents' in one fitness call.
+    """
+
+    init: Callable
+    start: Callable
+    started: Callable
+    propose: Callable
+    absorb: Callable
+
+
+def make_steps(env: EvolutionEnv, policy: Policy) -> Steps:
+    """The step of `policy` on `env`, split around its one fitness call (`Steps`)."""
     n_init, n_act, n_learn, n_next = (*policy.keys, 0)[:4]
 
-    def init(key: jax.Array) -> AgentState:
+    def start(key: jax.Array) -> Start:
         keys = jax.random.split(key, n_init + 2)
-        obs, evo = env.reset(keys[n_init])
-        learner = policy.init(keys[:n_init], obs)
-        return AgentState(learner, evo, evo, keys[n_init + 1], jnp.zeros((), jnp.int32),
+        return Start(*env.first_bodies(keys[n_init]), keys[:n_init], keys[n_init + 1])
+
+    def started(first: Start, out) -> AgentState:
+        obs, evo = env.first_evaluated(first.morphs, out)
+        learner = policy.init(first.key_init, obs)
+        return AgentState(learner, evo, evo, first.key, jnp.zeros((), jnp.int32),
                           *track_best(evo))
 
-    def env_step(state: AgentState, _):
+    def init(key: jax.Array) -> AgentState:
+        first = start(key)
+        return started(first, env.fitness_fn(first.keys, first.morphs, first.params))
+
+    def propose(state: AgentState) -> Proposal:
         keys = jax.random.split(state.key, n_act + n_learn + n_next + 2)
         key_act, key_env = keys[1 : 1 + n_act], keys[1 + n_act]
         key_learn, key_next = jnp.split(keys[2 + n_act :], [n_learn])
@@ -125,24 +177,43 @@ def from_policy(env: EvolutionEnv, policy: Policy, mesh=None) -> Agent:
         obs = env.observe(state.evo)
         action, act_metrics = policy.act(state.learner, key_act, obs, state.step)
 
-        # MUTATE AND EVALUATE THE CHILDREN (one batched fitness call)
-        next_obs, children, reward, terminated, truncated, _ = env.step(key_env, state.evo, action)
+        # MUTATE: the children, to be evaluated in one batched fitness call
+        fit_keys, morphs, params = env.children(key_env, state.evo, action)
+        return Proposal(fit_keys, morphs, params, obs, action, key_learn, key_next, keys[0],
+                        act_metrics)
+
+    def absorb(state: AgentState, prop: Proposal, out):
+        # THE CHILDREN EVALUATED
+        next_obs, children, reward, terminated, truncated, _ = env.evaluated(
+            state.evo, prop.action, prop.morphs, out)
         best = track_best(children, (state.best_fitness, state.best_morph, state.best_params))
         done = terminated | truncated
-        learner, evo = policy.next_evo(env, state.learner, key_next, state.evo, children,
+        learner, evo = policy.next_evo(env, state.learner, prop.key_next, state.evo, children,
                                        state.first, done)
 
         # LEARN
-        transition = Transition(obs, action, reward, next_obs, terminated, done)
-        learner, learn_metrics = policy.learn(learner, key_learn, transition, state.step)
-        new = AgentState(learner, evo, state.first, keys[0], state.step + 1, *best)
+        transition = Transition(prop.obs, prop.action, reward, next_obs, terminated, done)
+        learner, learn_metrics = policy.learn(learner, prop.key_learn, transition, state.step)
+        new = AgentState(learner, evo, state.first, prop.key, state.step + 1, *best)
         metrics = {"reward": reward, "fitness": children.fitness, "best_fitness": best[0]}
         metrics["bodies"] = bodies(state.evo, children)
-        return new, {**metrics, **act_metrics, **learn_metrics}
+        return new, {**metrics, **prop.act_metrics, **learn_metrics}
+
+    return Steps(init, start, started, propose, absorb)
+
+
+def from_policy(env: EvolutionEnv, policy: Policy, mesh=None) -> Agent:
+    """The jitted agent of `policy` on `env`, its state replicated on `mesh` (default: every
+    device; the fitness inside splits its batch across them)."""
+    steps = make_steps(env, policy)
+
+    def env_step(state: AgentState, _):
+        prop = steps.propose(state)
+        return steps.absorb(state, prop, env.fitness_fn(prop.keys, prop.morphs, prop.params))
 
     def chunk(state: AgentState, num_steps: int):
         """`num_steps` env steps in one `lax.scan`; metrics stacked along a leading axis."""
         return jax.lax.scan(env_step, state, length=num_steps)
 
-    init, chunk = jit_replicated(init, chunk, mesh)
+    init, chunk = jit_replicated(steps.init, chunk, mesh)
     return Agent(init, chunk, policy.scores)

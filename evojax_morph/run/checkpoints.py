@@ -28,6 +28,14 @@ from evojax_morph.sharding import to_host
 FINITE = (".learner", ".evo.params", ".first.params", ".best_params")
 
 
+def write_atomic(path: Path, data: bytes) -> None:
+    """`data` to `path`, written beside it and renamed over it: a write cut short leaves the
+    last whole file (the experiments' resumable pickles)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.with_suffix(".tmp").write_bytes(data)
+    path.with_suffix(".tmp").replace(path)
+
+
 def checkpoint_manager(out: Path):
     import orbax.checkpoint as ocp
 

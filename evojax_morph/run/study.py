@@ -1,0 +1,202 @@
+"""A study as one batched program: every method and every seed of a comparison stepping together.
+
+A step of the study proposes each method's children (its agent's `Steps.propose`, vmapped over
+its seeds), evaluates every method's and seed's children in ONE call of the fitness on one flat
+batch of sum_m S x N_m bodies, and gives each method its results back (`Steps.absorb`, vmapped
+over its seeds). The start (m0's evaluation) is one call in the same way. Nothing but the batch
+is shared: a method's seeds run exactly as `from_policy`'s agent runs them alone with the same
+keys (tests/test_study.py, on the table fitness, bit for bit), and the methods see nothing of
+each other. The fitness sees one flat world axis, never a vmap inside a vmap (MuJoCo Warp's
+call needs that), and a GPU gets calls as full as the study is wide.
+
+`make_study` gives the jitted `init(keys)` and `chunk(states, num_steps)` (one `lax.scan`);
+`run_study` is the host's loop: chunks, each followed by an atomic save, resumed from the file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from evojax_morph import agents
+from evojax_morph.agents.base import Policy, make_steps
+from evojax_morph.fitnesses.table import signature
+from evojax_morph.mdp import EvolutionEnv
+from evojax_morph.run.checkpoints import write_atomic
+from evojax_morph.run.pipeline import Pipeline, RunConfig, agent_config, build
+from evojax_morph.sharding import jit_replicated, to_host
+
+
+class Method(NamedTuple):
+    """One method of a study: an agent's policy on its env (N_m parallel evolutions a seed)."""
+
+    name: str
+    env: EvolutionEnv  # every method's env has the study's space and fitness
+    policy: Policy
+
+
+class Study(NamedTuple):
+    """init(keys (S,)) -> states, {method: AgentState (S, ...)}: seed s of every method starts
+    from keys[s], as `from_policy`'s `init(keys[s])` would alone. chunk(states, num_steps) ->
+    (states, metrics): {method: its agent's metrics (num_steps, S, ...), "bodies" left out,
+    with "signature" (num_steps, S, N_m, 2) uint32: each child's `table.signature`}.
+    evaluations: bodies a study step evaluates (one fitness call): sum_m S x N_m."""
+
+    init: Callable
+    chunk: Callable
+    methods: tuple[str, ...]
+    seeds: int
+    evaluations: int
+
+
+def methods_from(cfg: RunConfig, names: Sequence[str], mesh=None) -> tuple[list[Method],
+                                                                          Pipeline]:
+    """(methods, pipeline): each agent of `names` as `run` builds it under `cfg` (its
+    settings from `cfg`, `pipeline.agent_config`), all on the env of cfg.num_envs evolutions
+    of the pipeline `build` makes of `cfg` with the first agent (its space, fitness config and
+    batched fitness, split across `mesh`)."""
+    p = build(dataclasses.replace(cfg, agent=names[0]), mesh)
+    methods = [Method(name, p.env, agents.make_policy(
+        name, p.env, agent_config(dataclasses.replace(cfg, agent=name), p.env)))
+        for name in names]
+    return methods, p
+
+
+def evaluate_together(fitness_fn: Callable, batches: Sequence[tuple]) -> list:
+    """The `FitnessResult`s of several (keys, morphs, params) batches of leading shape
+    (S, N_m), from one call of `fitness_fn` on their concatenation, flat: (sum_m S x N_m,)."""
+    shapes = [b[0].shape[:2] for b in batches]
+    sizes = [s * n for s, n in shapes]
+    flat = [jax.tree.map(lambda x, k=k: x.reshape((k, *x.shape[2:])), b)
+            for b, k in zip(batches, sizes)]
+    out = fitness_fn(*jax.tree.map(lambda *xs: jnp.concatenate(xs), *flat))
+    ends = np.cumsum(sizes).tolist()
+    return [jax.tree.map(lambda x, a=end - k, b=end, sh=sh: x[a:b].reshape((*sh, *x.shape[1:])),
+                         out) for k, end, sh in zip(sizes, ends, shapes)]
+
+
+def make_study(methods: Sequence[Method], seeds: int, fitness_fn: Callable | None = None,
+               mesh=None) -> Study:
+    """The study of `methods` x `seeds`, jitted, its states replicated on `mesh` (default:
+    every device; the fitness splits its one batch a step across them).
+
+    Args:
+      methods: distinct names; their envs share one space and fitness.
+      seeds: S runs of each method.
+      fitness_fn: the one batched fitness (default: the first method's env's).
+    """
+    names = tuple(m.name for m in methods)
+    if len(set(names)) != len(names):
+        raise ValueError(f"a study's methods need distinct names, got {names}")
+    fitness_fn = fitness_fn or methods[0].env.fitness_fn
+    steps = [make_steps(m.env, m.policy) for m in methods]
+    args = lambda b: (b.keys, b.morphs, b.params)  # noqa: E731
+
+    def init(keys: jax.Array) -> dict:
+        starts = [jax.vmap(s.start)(keys) for s in steps]
+        outs = evaluate_together(fitness_fn, [args(b) for b in starts])
+        return {m.name: jax.vmap(s.started)(b, out)
+                for m, s, b, out in zip(methods, steps, starts, outs)}
+
+    def step(states: dict, _):
+        # PROPOSE: every method's seeds act and mutate
+        props = [jax.vmap(s.propose)(states[m.name]) for m, s in zip(methods, steps)]
+        # EVALUATE every child of the study in one fitness call
+        outs = evaluate_together(fitness_fn, [args(p) for p in props])
+        # ABSORB: each method's seeds learn from their own children
+        new, metrics = {}, {}
+        for m, s, p, out in zip(methods, steps, props, outs):
+            new[m.name], mm = jax.vmap(s.absorb)(states[m.name], p, out)
+            mm = {k: v for k, v in mm.items() if k != "bodies"}
+            mm["signature"] = jax.vmap(jax.vmap(signature))(p.morphs)
+            metrics[m.name] = mm
+        return new, metrics
+
+    def chunk(states: dict, num_steps: int):
+        """`num_steps` study steps in one `lax.scan`; metrics stacked along a leading axis."""
+        return jax.lax.scan(step, states, length=num_steps)
+
+    init, chunk = jit_replicated(init, chunk, mesh)
+    evaluations = seeds * sum(m.env.num_envs for m in methods)
+    return Study(init, chunk, names, seeds, evaluations)
+
+
+def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
+              resume: Path | None = None, deadline: float | None = None,
+              on_chunk: Callable | None = None) -> dict | None:
+    """The study's host loop from the seeds' `keys` (S,): `num_steps` steps in chunks of
+    `chunk`, resumable.
+
+    With `resume`, the states and metrics so far are saved there after the start and after
+    every chunk (a pickle, written beside and renamed over: a call stopped mid-write leaves
+    the last whole save) and picked up by the next call; past `deadline` (time.time()) it
+    returns None after the chunk in progress, to be called again. on_chunk(states, done) ->
+    a dict kept under "at_chunks" (e.g. each run's best body at that point).
+
+    Returns:
+      {"metrics": {method: {name: (num_steps, S, ...)}}, "states": the final states (host),
+      "at_chunks": [on_chunk's dicts, with "steps": steps done], "chunk_seconds": [the wall
+      clock of each compiled chunk call], "evaluations_per_second": the study's evaluations
+      over those seconds, "seconds": every call's wall clock, compiles included}.
+    """
+    called = time.time()
+    so_far = pickle.loads(resume.read_bytes()) if resume and resume.exists() else None
+    if so_far is None:
+        start = time.perf_counter()
+        states = jax.block_until_ready(study.init(keys))
+        so_far = {"metrics": [], "at_chunks": [], "chunk_seconds": [], "chunk_steps": [],
+                  "done": 0, "seconds": 0.0, "init_seconds": time.perf_counter() - start}
+        if on_chunk is not None:
+            so_far["at_chunks"].append({"steps": 0, **on_chunk(to_host(states), 0)})
+    else:
+        states = so_far.pop("states")
+
+    def keep():
+        if resume is not None:
+            kept = {**so_far, "states": to_host(states),
+                    "seconds": so_far["seconds"] + time.time() - called}
+            write_atomic(resume, pickle.dumps(kept))
+
+    keep()
+    compiled = {}
+    while so_far["done"] < num_steps:
+        if deadline is not None and time.time() > deadline:
+            return None
+        n = min(chunk, num_steps - so_far["done"])
+        if n not in compiled:  # compile outside the clock, then time the compiled call alone
+            compiled[n] = study.chunk.lower(states, n).compile()
+        start = time.perf_counter()
+        states, metrics = jax.block_until_ready(compiled[n](states))
+        so_far["chunk_seconds"].append(time.perf_counter() - start)
+        so_far["chunk_steps"].append(n)
+        so_far["metrics"].append(to_host(metrics))
+        so_far["done"] += n
+        if on_chunk is not None:
+            so_far["at_chunks"].append({"steps": so_far["done"],
+                                        **on_chunk(to_host(states), so_far["done"])})
+        keep()
+    cat = {m: {k: np.concatenate([c[m][k] for c in so_far["metrics"]])
+               for k in so_far["metrics"][0][m]} for m in study.methods}
+    timed = float(np.sum(so_far["chunk_seconds"]))
+    return {
+        "metrics": cat,
+        "states": to_host(states),
+        "at_chunks": so_far["at_chunks"],
+        "chunk_seconds": so_far["chunk_seconds"],
+        "evaluations_per_second": study.evaluations * sum(so_far["chunk_steps"]) / timed,
+        "init_seconds": so_far["init_seconds"],
+        "seconds": so_far["seconds"] + time.time() - called,
+    }
+
+
+def best_bodies(states: dict) -> dict[str, Any]:
+    """{method: (S, ...) each run's best body so far (its best single draw), host-side}."""
+    return {m: jax.device_get(s.best_morph) for m, s in states.items()}

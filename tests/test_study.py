@@ -1,0 +1,113 @@
+"""A study as one batched program (issue 63), on Bad Walker's table fitness (deterministic, no
+training): each method's seeds run as its agent runs them alone, in one fitness call a step."""
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from evojax_morph import agents
+from evojax_morph.run import study
+from evojax_morph.run.pipeline import RunConfig
+from experiments import crawler_study
+
+METHODS = ("ddqn", "a2c", "random", "regularized_evolution", "evolution")
+N, SEEDS, STEPS = 4, 2, 4  # a step: 5 methods x 2 seeds x 4 children, one call of 40
+
+
+def make(names, calls=None):
+    """The study of `names` x SEEDS on Bad Walker's table, N evolutions a seed; with `calls`, a
+    list, its fitness appends each call's batch size as it is traced."""
+    cfg = RunConfig(space="bad_walker", fitness="table", num_envs=N, horizon=3,
+                    explore_steps=2, learning_starts=N)
+    methods, p = study.methods_from(cfg, names)
+    fitness_fn = p.env.fitness_fn
+
+    def counted(*args):
+        calls.append(len(args[0]))
+        return fitness_fn(*args)
+
+    return methods, study.make_study(methods, SEEDS, fitness_fn if calls is None else counted)
+
+
+def test_one_fitness_call_a_step_for_every_method_and_seed():
+    calls = []
+    _, s = make(METHODS, calls)
+    states = jax.eval_shape(s.init, jax.random.split(jax.random.PRNGKey(0), SEEDS))
+    assert calls == [len(METHODS) * SEEDS * N]  # the start: m0 of every run, one call
+    calls.clear()
+    _, metrics = jax.eval_shape(lambda st: s.chunk(st, 3), states)
+    assert calls == [len(METHODS) * SEEDS * N]  # one call in the scanned step
+    assert s.evaluations == len(METHODS) * SEEDS * N and s.methods == METHODS
+    for m in METHODS:  # its seeds each, S x N evaluations a step: equal evaluations
+        assert states[m].best_fitness.shape == (SEEDS,)
+        assert metrics[m]["fitness"].shape == (3, SEEDS, N)
+        assert metrics[m]["signature"].shape == (3, SEEDS, N, 2)
+
+
+def runs_as_alone(names, tmp_path):
+    """Seed s of each method in the study against its agent (`from_policy`) run alone from
+    keys[s] (its seeds vmapped, as `experiments.common.run_agent` runs them): the
+    bodies, their fitness, rewards, actions and the best bit for bit; a learner's floats
+    within float rounding (XLA fuses the study's one program apart from the agent's own, so a
+    Q-network's weights differ in the 7th digit). And the same study resumed from its file
+    after 2 steps against one go of 4, bit for bit."""
+    methods, s = make(names)
+    keys = jax.random.split(jax.random.PRNGKey(3), SEEDS)
+    whole = study.run_study(s, keys, STEPS, chunk=2)
+    study.run_study(s, keys, 2, chunk=2, resume=tmp_path / "s.pkl")  # a call that stops
+    resumed = study.run_study(s, keys, STEPS, chunk=2, resume=tmp_path / "s.pkl")
+    for a, b in zip(jax.tree.leaves((whole["states"], whole["metrics"])),
+                    jax.tree.leaves((resumed["states"], resumed["metrics"]))):
+        np.testing.assert_array_equal(a, b)
+    assert whole["evaluations_per_second"] > 0
+    for m in methods:
+        agent = agents.from_policy(m.env, m.policy)
+        state, metrics = jax.jit(jax.vmap(lambda k, a=agent: a.chunk(a.init(k), STEPS)))(keys)
+        mine, got = whole["states"][m.name], whole["metrics"][m.name]
+        exact = lambda st: (st.evo, st.first, st.step, st.best_fitness, st.best_morph)  # noqa
+        for a, b in zip(jax.tree.leaves(exact(state)), jax.tree.leaves(exact(mine))):
+            np.testing.assert_array_equal(a, b, err_msg=m.name)
+        for a, b in zip(jax.tree.leaves(state.learner), jax.tree.leaves(mine.learner)):
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7, err_msg=m.name)
+        for name, x in metrics.items():
+            if name in ("reward", "fitness", "best_fitness", "action"):
+                np.testing.assert_array_equal(np.swapaxes(x, 0, 1), got[name], err_msg=m.name)
+            elif name != "bodies":
+                np.testing.assert_allclose(np.swapaxes(x, 0, 1), got[name], rtol=1e-5,
+                                           atol=1e-7, err_msg=m.name)
+
+
+def test_the_baselines_run_as_alone_and_resume_as_one_go(tmp_path):
+    runs_as_alone(("random", "evolution"), tmp_path)
+
+
+@pytest.mark.slow  # 166 s cold on 2 shared cores: the learners' programs, alone and together
+def test_every_method_runs_as_alone_and_resumes_as_one_go(tmp_path):
+    runs_as_alone(METHODS, tmp_path)
+
+
+def test_every_run_and_body_confirms_with_keys_of_its_own():
+    """No two runs (method, seed) of the study, nor two returned bodies of a run, share a
+    confirming key; a body's controllers each take their own."""
+    keys = [crawler_study.confirm_keys(m, seed, body, 16) for m in METHODS
+            for seed in range(10) for body in range(3)]
+    assert len({tuple(np.asarray(k)) for ks in keys for k in ks}) == len(METHODS) * 10 * 3 * 16
+
+
+@pytest.mark.slow  # 65 s cold: the five agents on Bad Walker's table, confirmed
+def test_the_toy_study_leaves_every_method_its_seeds_at_equal_evaluations(tmp_path):
+    """`python -m experiments.crawler_study --toy`: every method's seeds, each with its returned
+    body confirmed, equal evaluations, the curve and the distinct bodies; the figure."""
+    crawler_study.main(["--toy", "--out", str(tmp_path)])
+    data = json.loads((tmp_path / "study_bad_walker_distance.json").read_text())
+    assert set(data["runs"]) == set(METHODS) and data["seed_indices"] == [0, 1]
+    assert [p["evaluations_per_call"] for p in data["parts"]] == [5 * 2 * 4]  # one part
+    for r in data["runs"].values():
+        assert len(r["returned"]) == len(r["distinct_bodies"]) == data["seeds"] == 2
+        assert r["curve"][-1]["evaluations"] == data["evaluations_per_run"] == 4 * 6
+        assert all(len(p["confirmed"]) == 2 for p in r["curve"])
+        assert {"distance", "upright", "upright_whole"} <= set(r["returned"][0])
+    assert all("p_holm" in d for d in data["effects"]["differences"].values())
+    assert (tmp_path / "study_bad_walker_distance.png").stat().st_size > 0
