@@ -1,15 +1,14 @@
 """Shared by the figure scripts: run one agent over several seeds at once, and plot bands.
 
-Seeds run under `jax.vmap` in one compiled call per chunk, so S seeds of N parallel evolutions
-evaluate S x N bodies per step in one batch; the wall-clock time of a step is that of the whole
-batch (all seeds together).
+An agent's seeds run as a study of one method (`evojax_morph.run.study`): S seeds of N parallel
+evolutions evaluate S x N bodies a step in one fitness call, one compiled call a chunk; the
+wall-clock time of a step is that of the whole batch (all seeds together).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import pickle
 import time
 from pathlib import Path
 
@@ -20,8 +19,8 @@ import numpy as np
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from evojax_morph.run.checkpoints import write_atomic  # noqa: E402
-from evojax_morph.run.pipeline import RunConfig, build  # noqa: E402
+from evojax_morph.run import study  # noqa: E402
+from evojax_morph.run.pipeline import RunConfig  # noqa: E402
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,62 +72,36 @@ def run_config(agent: str, setup: Setup) -> RunConfig:
 
 def run_agent(agent: str, setup: Setup, seeds: int, resume: Path | None = None,
               deadline: float | None = None) -> dict | None:
-    """`seeds` independent runs of `agent`, built as the run command builds them; returns
-    per-step arrays of shape (steps, seeds, ...).
+    """`seeds` independent runs of `agent`, built as the run command builds them and run by the
+    library's loop (a study of one method, `run.study.run_study`; seed s from
+    split(PRNGKey(0), seeds)[s]); returns per-step arrays of shape (steps, seeds, ...).
 
-    With `resume`, the agents' states and metrics so far are saved there (a pickle) after every
-    chunk and picked up from there by the next call; past `deadline` (time.time()) it returns
-    None after the chunk in progress, to be called again. "seconds" counts every call's wall
-    clock, building and compiling included."""
+    With `resume`, the runs so far are saved there after every chunk and picked up from there
+    by the next call; past `deadline` (time.time()) it returns None after the chunk in
+    progress, to be called again. "seconds" counts every call's wall clock, building and
+    compiling included."""
     called = time.time()
-    p = build(run_config(agent, setup))
-    chunk = p.agent.chunk
-    so_far = pickle.loads(resume.read_bytes()) if resume and resume.exists() else None
-    if so_far is None:
-        keys = jax.random.split(jax.random.PRNGKey(0), seeds)
-        start = time.perf_counter()
-        states = jax.block_until_ready(jax.jit(jax.vmap(p.agent.init))(keys))
-        so_far = {"metrics": [], "walls": [], "done": 0, "seconds": 0.0,
-                  "init_seconds": time.perf_counter() - start}
-    else:
-        states = so_far.pop("states")
-
-    def keep():
-        if resume is not None:
-            kept = {**so_far, "states": jax.device_get(states),
-                    "seconds": so_far["seconds"] + time.time() - called}
-            write_atomic(resume, pickle.dumps(kept))
-
-    keep()
-    step_fns = {}
-    while so_far["done"] < setup.steps:
-        if deadline is not None and time.time() > deadline:
-            return None
-        n = min(setup.chunk, setup.steps - so_far["done"])
-        if n not in step_fns:  # compile outside the clock, then time the compiled call alone
-            step_fns[n] = jax.jit(jax.vmap(lambda s, n=n: chunk(s, n))).lower(states).compile()
-        start = time.perf_counter()
-        states, m = jax.block_until_ready(step_fns[n](states))
-        so_far["walls"] += [(time.perf_counter() - start) / n] * n
-        so_far["metrics"].append({k: v for k, v in jax.device_get(m).items() if k != "bodies"})
-        so_far["done"] += n
-        keep()
-    metrics = so_far["metrics"]
-    # metrics come as (seeds, n, ...): put steps first
-    cat = {k: np.concatenate([np.swapaxes(m[k], 0, 1) for m in metrics]) for k in metrics[0]}
-    best = jax.device_get(states.best_morph)
+    methods, p = study.methods_from(run_config(agent, setup), [agent])
+    res = study.run_study(study.make_study(methods, seeds),
+                          jax.random.split(jax.random.PRNGKey(0), seeds), setup.steps,
+                          setup.chunk, resume, deadline, since=called)
+    if res is None:
+        return None
+    states, steps = res["states"][agent], res["chunk_steps"]
     return {
         "agent": agent,
-        "metrics": cat,  # (steps, seeds, ...)
-        "step_seconds": np.asarray(so_far["walls"]),  # (steps,) a step, all seeds together
-        "init_seconds": so_far["init_seconds"],  # compile and evaluate m0 (the first call)
-        "seconds": so_far["seconds"] + time.time() - called,  # all calls, compiles included
+        "metrics": res["metrics"][agent],  # (steps, seeds, ...)
+        # (steps,) a step, all seeds together: its chunk's compiled call over its steps
+        "step_seconds": np.repeat(np.divide(res["chunk_seconds"], steps), steps),
+        "init_seconds": res["init_seconds"],  # compile and evaluate m0 (the first call)
+        "seconds": res["seconds"],  # all calls, compiles included
         "evals_per_step": setup.num_envs,  # per seed
-        "best_bodies": [jax.tree.map(lambda x, i=i: x[i], best) for i in range(seeds)],
-        "best_fitness": np.asarray(jax.device_get(states.best_fitness)),
+        "best_bodies": [jax.tree.map(lambda x, i=i: x[i], states.best_morph)
+                        for i in range(seeds)],
+        "best_fitness": np.asarray(states.best_fitness),
         "space": p.space,
         "horizon": p.env.horizon,
-        "states": states,  # the agents' final states, (seeds, ...)
+        "states": states,  # the agents' final states, (seeds, ...), host-side
         "pipeline": p,
     }
 

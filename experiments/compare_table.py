@@ -4,8 +4,9 @@ Every registered agent (Double-DQN, QR-DQN, actor-critic, evolution, random walk
 times on the `table` fitness of --space, each run --num-envs parallel evolutions x --steps
 steps (num_envs x steps fitness evaluations per run), at each K of --ks (the fitness of a body
 is the mean of K of its stored results, drawn anew at every evaluation). The seeds of a
-(method, K) run together under `jax.vmap`, as `experiments.common.run_agent` runs them; this
-script builds its own `RunConfig` because it sets K, the exploration schedule and the chunk.
+(method, K) run together under `jax.vmap` in this script's own loop (it tallies each chunk's
+children by table row between chunks); it builds its own `RunConfig` because it sets K, the
+exploration schedule and the chunk.
 
 The measure is the true fitness (the table's mean over all its results) of the body each run
 returns, its regret to the table's best body and its rank (1 = best), under two rules for what

@@ -10,7 +10,7 @@ import pytest
 from evojax_morph import agents
 from evojax_morph.run import study
 from evojax_morph.run.pipeline import RunConfig
-from experiments import crawler_study
+from experiments import common, crawler_study
 
 METHODS = ("ddqn", "a2c", "random", "regularized_evolution", "evolution")
 N, SEEDS, STEPS = 4, 2, 4  # a step: 5 methods x 2 seeds x 4 children, one call of 40
@@ -48,11 +48,10 @@ def test_one_fitness_call_a_step_for_every_method_and_seed():
 
 def runs_as_alone(names, tmp_path):
     """Seed s of each method in the study against its agent (`from_policy`) run alone from
-    keys[s] (its seeds vmapped, as `experiments.common.run_agent` runs them): the
-    bodies, their fitness, rewards, actions and the best bit for bit; a learner's floats
-    within float rounding (XLA fuses the study's one program apart from the agent's own, so a
-    Q-network's weights differ in the 7th digit). And the same study resumed from its file
-    after 2 steps against one go of 4, bit for bit."""
+    keys[s] (its seeds vmapped): the bodies, their fitness, rewards, actions and the best
+    bit for bit; a learner's floats within float rounding (XLA fuses the study's one program
+    apart from the agent's own, so a Q-network's weights differ in the 7th digit). And the
+    same study resumed from its file after 2 steps against one go of 4, bit for bit."""
     methods, s = make(names)
     keys = jax.random.split(jax.random.PRNGKey(3), SEEDS)
     whole = study.run_study(s, keys, STEPS, chunk=2)
@@ -86,6 +85,28 @@ def test_the_baselines_run_as_alone_and_resume_as_one_go(tmp_path):
 @pytest.mark.slow  # 166 s cold on 2 shared cores: the learners' programs, alone and together
 def test_every_method_runs_as_alone_and_resumes_as_one_go(tmp_path):
     runs_as_alone(METHODS, tmp_path)
+
+
+def test_an_experiments_agent_runs_as_a_study_of_one_method(tmp_path):
+    """`experiments.common.run_agent`: seed s from split(PRNGKey(0), S)[s], run as its agent
+    runs alone (its seeds vmapped: run_agent's own loop before issue 64), bit for bit; stopped
+    at its deadline, called again, it resumes; per-step arrays are (steps, seeds, ...)."""
+    setup = common.Setup(space="bad_walker", fitness="table", num_envs=N, steps=6, chunk=4)
+    resume = tmp_path / "run.state"
+    assert common.run_agent("evolution", setup, SEEDS, resume, deadline=0) is None
+    res = common.run_agent("evolution", setup, SEEDS, resume)
+    agent = res["pipeline"].agent
+    keys = jax.random.split(jax.random.PRNGKey(0), SEEDS)
+    state, metrics = jax.jit(jax.vmap(lambda k: agent.chunk(agent.init(k), 6)))(keys)
+    for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(res["states"]), strict=True):
+        np.testing.assert_array_equal(a, b)
+    for name, x in metrics.items():
+        if name != "bodies":
+            np.testing.assert_array_equal(np.swapaxes(x, 0, 1), res["metrics"][name])
+    assert res["metrics"]["reward"].shape == (6, SEEDS, N)
+    assert res["step_seconds"].shape == (6,) and res["seconds"] >= res["init_seconds"] > 0
+    np.testing.assert_array_equal(res["best_fitness"], state.best_fitness)
+    assert len(res["best_bodies"]) == SEEDS
 
 
 def test_every_run_and_body_confirms_with_keys_of_its_own():

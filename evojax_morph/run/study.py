@@ -131,7 +131,7 @@ def make_study(methods: Sequence[Method], seeds: int, fitness_fn: Callable | Non
 
 def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
               resume: Path | None = None, deadline: float | None = None,
-              on_chunk: Callable | None = None) -> dict | None:
+              on_chunk: Callable | None = None, since: float | None = None) -> dict | None:
     """The study's host loop from the seeds' `keys` (S,): `num_steps` steps in chunks of
     `chunk`, resumable.
 
@@ -139,15 +139,18 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
     every chunk (a pickle, written beside and renamed over: a call stopped mid-write leaves
     the last whole save) and picked up by the next call; past `deadline` (time.time()) it
     returns None after the chunk in progress, to be called again. on_chunk(states, done) ->
-    a dict kept under "at_chunks" (e.g. each run's best body at that point).
+    a dict kept under "at_chunks" (e.g. each run's best body at that point). since: when this
+    call's work began (time.time(), e.g. before building the study; default: now).
 
     Returns:
       {"metrics": {method: {name: (num_steps, S, ...)}}, "states": the final states (host),
       "at_chunks": [on_chunk's dicts, with "steps": steps done], "chunk_seconds": [the wall
-      clock of each compiled chunk call], "evaluations_per_second": the study's evaluations
-      over those seconds, "seconds": every call's wall clock, compiles included}.
+      clock of each compiled chunk call], "chunk_steps": [the steps of each],
+      "evaluations_per_second": the study's evaluations over those seconds, "init_seconds":
+      the start's call, compile included, "seconds": every call's wall clock from its
+      `since`, compiles included}.
     """
-    called = time.time()
+    called = time.time() if since is None else since
     so_far = pickle.loads(resume.read_bytes()) if resume and resume.exists() else None
     if so_far is None:
         start = time.perf_counter()
@@ -191,6 +194,7 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
         "states": to_host(states),
         "at_chunks": so_far["at_chunks"],
         "chunk_seconds": so_far["chunk_seconds"],
+        "chunk_steps": so_far["chunk_steps"],
         "evaluations_per_second": study.evaluations * sum(so_far["chunk_steps"]) / timed,
         "init_seconds": so_far["init_seconds"],
         "seconds": so_far["seconds"] + time.time() - called,
