@@ -44,6 +44,7 @@ import numpy as np
 
 import evojax_morph as em
 from evojax_morph import ppo
+from evojax_morph.fitnesses import get_fitness
 from evojax_morph.fitnesses import table as tables
 from evojax_morph.physics.determinism import full_precision
 from evojax_morph.run.cli import start_deterministic
@@ -91,7 +92,7 @@ def settings(space: em.Space, cfg: em.FitnessConfig, args, names: list[str]) -> 
         "seeds": args.seeds,
         "bodies": len(names),
         "env_steps_per_result": (ppo.env_steps_per_morphology(cfg.task, cfg.ppo)
-                                 if cfg.kind == "ppo" else 0),
+                                 if get_fitness(cfg.kind).trains_controllers else 0),
         "engine": {name: getattr(cfg, name) for name in engine_flags()} or "mjx (jax)",
     }
 

@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import evojax_morph as em
+from evojax_morph.fitnesses import get_fitness
 from evojax_morph.run import study
 from evojax_morph.run.checkpoints import write_atomic
 from evojax_morph.run.pipeline import agent_config, build
@@ -213,11 +214,12 @@ def summary(parts: list[dict], best: dict, args) -> dict:
         }
     study_seconds = sum(p["study_seconds"] for p in parts)
     confirm_seconds = sum(p["confirm_seconds"] for p in parts) + best["seconds"]
+    trains = get_fitness(args.fitness).trains_controllers  # each child's from its parent's
     return {
         "space": args.space, "task": parts[0]["task"],
         "fitness": {"kind": args.fitness, "controllers": 1,
-                    "train_steps": args.train_steps if args.fitness == "ppo" else None,
-                    "inheritance": args.fitness == "ppo"},
+                    "train_steps": args.train_steps if trains else None,
+                    "inheritance": trains},
         "physics": args.physics, "agents": list(args.methods), "seeds": len(seeds),
         "seed_indices": seeds, "evaluations_per_run": n * args.steps,
         "start_evaluations_per_run": n, "num_envs": n, "steps": args.steps, "chunk": args.chunk,
