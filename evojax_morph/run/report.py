@@ -1,5 +1,5 @@
-"""The end of a run: its report, printed and written (summary.json, the plots, best.gif), and
-the entries of confirmed.json and timing.json it is built from (`driver`)."""
+"""The end of a run: its report, printed and written (summary.json, the plots, best.gif,
+timing.json), from the earlier stages' results (`driver`, `confirm.confirm_stage`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ import time
 import numpy as np
 
 from evojax_morph.run import bodylog, plots, video
-from evojax_morph.run.confirm import Confirmed
+from evojax_morph.run.compile_ahead import Job
+from evojax_morph.run.confirm import best_controllers
 from evojax_morph.run.pipeline import Greedy
 from evojax_morph.tasks import gait_word
 
@@ -30,36 +31,6 @@ def timing(total: float, chunks: list[tuple[int, float]]) -> dict:
             "outside_steps_seconds": step and round(total - step * steps, 1)}
 
 
-def confirmed_entry(found: Confirmed, logged: dict) -> dict:
-    """summary.json's entry of a confirmed body, with its mean and count in the body log."""
-    return {
-        "body": found.body,
-        "mean": found.mean,
-        "ci95": list(found.ci95),
-        "controllers": len(found.values),
-        "values": [float(v) for v in found.values],
-        "diverged": int(found.diverged.sum()),
-        "log_mean": logged["mean_fitness"],
-        "log_evaluations": logged["evaluations"],
-        **gait_entry(found),
-    }
-
-
-def gait_entry(found: Confirmed) -> dict:
-    """A confirmed body's gait over its fresh evaluations: mean distance (m) and upright (the
-    fraction of an episode before a fall), the fraction of evaluations upright the whole
-    episode, and each evaluation's; None where the fitness measures no gait."""
-    if not np.isfinite(found.distance).all():
-        return {"distance": None, "upright": None, "upright_whole": None}
-    return {
-        "distance": float(found.distance.mean()),
-        "upright": float(found.upright.mean()),
-        "upright_whole": found.upright_whole,
-        "distances": [round(float(d), 4) for d in found.distance],
-        "uprights": [round(float(u), 4) for u in found.upright],
-    }
-
-
 def walks(entry: dict, seconds: float) -> str:
     """'walks 3.1 m in 5 s, upright 100% ...' of a confirmed entry, "moves" where it does not
     walk by `locomotion.gait_word` ('' without a gait)."""
@@ -71,9 +42,19 @@ def walks(entry: dict, seconds: float) -> str:
             "its evaluations)")
 
 
+def report_jobs(run) -> list[Job]:
+    """best.gif's replay (of the controllers the confirm stage leaves) and its GL probes, for
+    compiling ahead."""
+    if not (run.gif and run.lead):
+        return []
+    shown = best_controllers(run.cfg, run.p)
+    return [Job("replay", lambda: video.lower_replay(run.p.space, shown)),
+            Job("gl", video.choose_gl, own_thread=True)]
+
+
 def report_stage(run, evolved, best, clock) -> None:
     """The report stage, on the lead process, from the earlier stages' results: `run`
-    (`driver.Run`), `evolved` (`driver.Evolved`), `best` (`driver.Best`) and their `clock`
+    (`driver.Run`), `evolved` (`driver.Evolved`), `best` (`confirm.Best`) and their `clock`
     (`driver.Clock`): the results (`write_results`), then timing.json."""
     write_results(run, evolved, best, clock.phase)
     times = timing(time.perf_counter() - clock.started, evolved.chunk_seconds) | {
