@@ -20,7 +20,7 @@ from conftest import DAMAGES, data_files, flip
 import evojax_morph as em
 from evojax_morph.physics import engines
 from evojax_morph.run import cli, compile_ahead
-from evojax_morph.run import confirm as confirming
+from evojax_morph.run import confirm_stage as confirming
 from evojax_morph.run.checkpoints import (
     DAMAGED,
     FINITE,

@@ -14,7 +14,7 @@ from conftest import truncate
 import evojax_morph as em
 from evojax_morph.fitnesses import table as tb
 from evojax_morph.run import bodylog, cli
-from evojax_morph.run import confirm as confirming
+from evojax_morph.run import confirm_stage as confirming
 from evojax_morph.run.checkpoints import Damaged
 from evojax_morph.run.pipeline import RunConfig
 

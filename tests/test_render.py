@@ -25,7 +25,7 @@ import evojax_morph as em
 from evojax_morph import ppo, render
 from evojax_morph.physics import opengl
 from evojax_morph.run import bodylog, saved_controllers, video
-from evojax_morph.run import confirm as confirming
+from evojax_morph.run import confirm_stage as confirming
 from evojax_morph.run.checkpoints import Damaged
 from evojax_morph.run.pipeline import Greedy, RunConfig, build
 

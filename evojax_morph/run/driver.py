@@ -3,7 +3,7 @@
 `execute(cfg, out, resume)` runs `pipeline.build(cfg)` chunk by chunk and writes the run
 directory (`evojax_morph.run` lists its files), as stages each handing its results to the next:
 `_build`, `_warm_up` (m0 or a checkpoint, `checkpoints`), `_evolve` (the steps, then the greedy
-rollout), `confirm.confirm_stage` (the bodies of the highest mean in the body log evaluated
+rollout), `confirm_stage` (the bodies of the highest mean in the body log evaluated
 again from scratch; its best is the run's best body) and `report.report_stage`. Each stage
 offers the programs it will call, which compile ahead (`compile_ahead.Warmup.collect`).
 """
@@ -25,7 +25,7 @@ import numpy as np
 from evojax_morph.physics.engines import registered
 from evojax_morph.run import bodylog, checkpoints, saved_controllers
 from evojax_morph.run.compile_ahead import Job, Warmup
-from evojax_morph.run.confirm import confirm_jobs, confirm_stage
+from evojax_morph.run.confirm_stage import best_controllers, confirm_jobs, confirm_stage
 from evojax_morph.run.pipeline import Greedy, Pipeline, RunConfig, build, make_greedy_rollout
 from evojax_morph.run.report import report_jobs, report_stage
 from evojax_morph.sharding import barrier, batch_mesh, replicated, to_host
@@ -86,8 +86,8 @@ class Run(NamedTuple):
 
 
 class Evolved(NamedTuple):
-    """What the evolve stage hands down: the agent state after `step` steps, its record, and
-    the trained agent's greedy rollout."""
+    """What the evolve stage hands down: the agent state after `step` steps, its record, the
+    trained agent's greedy rollout, and the best of its body log."""
 
     state: object
     step: int
@@ -95,14 +95,17 @@ class Evolved(NamedTuple):
     chunk_seconds: list[tuple[int, float]]  # (steps, wall clock) of each chunk; the first compiles
     dispatch: float | None  # seconds until the first chunk call returns (`timing`)
     greedy: Greedy | None  # None for the baselines: no policy to roll out
+    best_bodies: list[dict] | None  # the body log's 10 of the highest mean (lead process)
+    best_draw: dict | None  # the body log's highest single draw (lead process)
 
 
 def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) -> None:
     """The run as stages: build, warm up (m0 or a checkpoint), evolve, confirm, report."""
     clock = Clock()
     run, step, state, abstract = _build(cfg, out, resume, gif)
+    # The stages' jobs, queued before m0's evaluation, begun after its lowering.
     ahead.collect(_evolve_jobs(run, abstract, step or 0) + confirm_jobs(run)
-                  + report_jobs(run))  # queued before m0's evaluation, begun after its lowering
+                  + report_jobs(run, best_controllers(cfg, run.p)))
     step, state, rows = _warm_up(run, step, state, ahead)
     clock.phase("build_and_m0")
     evolved = _evolve(run, step, state, rows, ahead, clock)
@@ -176,7 +179,7 @@ def _warm_up(run: Run, step, state, ahead: Warmup):
 def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: Clock) -> Evolved:
     """The steps from `step` to cfg.steps, chunk by chunk: metrics.csv, the body log and
     TensorBoard after each chunk, a checkpoint every cfg.checkpoint_every chunks and at the end;
-    then the trained agent's greedy rollout (an agent with a policy)."""
+    then the body log's best, and the trained agent's greedy rollout (an agent with a policy)."""
     from tensorboardX import SummaryWriter
     from tqdm import tqdm
 
@@ -210,9 +213,12 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: 
             run.manager.save(step, args=checkpoints.save_args(state))
     bar.close()
     run.manager.wait_until_finished()
+    ranked = draw = None
     if lead:
         writer.close()
         run.bodies.close()
+        path = run.out / "bodies.sqlite"
+        ranked, draw = bodylog.best_bodies(path, 10), bodylog.best_draw(path)
     clock.phase("steps")
     greedy = None
     if run.greedy_rollout is not None:
@@ -220,7 +226,7 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: 
         greedy = run.greedy_rollout(state.learner, state.first, run.key_greedy)
     barrier("body log written")  # every process reads it in the confirm stage
     clock.phase("greedy_rollout")
-    return Evolved(state, step, rows, chunk_seconds, dispatch, greedy)
+    return Evolved(state, step, rows, chunk_seconds, dispatch, greedy, ranked, draw)
 
 
 def _record_chunk(run: Run, step: int, n: int, metrics: dict, writer) -> list[dict]:

@@ -1,5 +1,5 @@
 """The end of a run: its report, printed and written (summary.json, the plots, best.gif,
-timing.json), from the earlier stages' results (`driver`, `confirm.confirm_stage`)."""
+timing.json), from the earlier stages' results (`driver`, `confirm_stage`)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import time
 
 import numpy as np
 
-from evojax_morph.run import bodylog, plots, video
+from evojax_morph.fitnesses import FitnessConfig
+from evojax_morph.run import plots, video
 from evojax_morph.run.compile_ahead import Job
-from evojax_morph.run.confirm import best_controllers
 from evojax_morph.run.pipeline import Greedy
 from evojax_morph.tasks import gait_word
 
@@ -42,19 +42,18 @@ def walks(entry: dict, seconds: float) -> str:
             "its evaluations)")
 
 
-def report_jobs(run) -> list[Job]:
-    """best.gif's replay (of the controllers the confirm stage leaves) and its GL probes, for
-    compiling ahead."""
+def report_jobs(run, shown: FitnessConfig) -> list[Job]:
+    """best.gif's replay of controllers trained under `shown` (those the confirm stage leaves,
+    `confirm_stage.best_controllers`) and its GL probes, for compiling ahead."""
     if not (run.gif and run.lead):
         return []
-    shown = best_controllers(run.cfg, run.p)
     return [Job("replay", lambda: video.lower_replay(run.p.space, shown)),
             Job("gl", video.choose_gl, own_thread=True)]
 
 
 def report_stage(run, evolved, best, clock) -> None:
     """The report stage, on the lead process, from the earlier stages' results: `run`
-    (`driver.Run`), `evolved` (`driver.Evolved`), `best` (`confirm.Best`) and their `clock`
+    (`driver.Run`), `evolved` (`driver.Evolved`), `best` (`confirm_stage.Best`) and their `clock`
     (`driver.Clock`): the results (`write_results`), then timing.json."""
     write_results(run, evolved, best, clock.phase)
     times = timing(time.perf_counter() - clock.started, evolved.chunk_seconds) | {
@@ -75,19 +74,18 @@ def write_results(run, evolved, best, phase=lambda name: None) -> None:
     out, space, greedy, saved = run.out, run.p.space, evolved.greedy, best.saved
     task = run.p.fitness.task
     episode_seconds = task.episode_length * task.frame_skip * space.template.opt.timestep
-    log = out / "bodies.sqlite"
     summary = {
         "best_fitness": best.fitness,  # the confirmed mean; else (not confirmed) the best draw
         "best_morphology": best.morph.to_dict(),
         "best_body": space.canonical(best.morph),
-        "best_single_draw": bodylog.best_draw(log),
+        "best_single_draw": evolved.best_draw,
         "confirmed": best.record["confirmed"],
         "confirm_note": best.record["confirm_note"],
         "env_steps": evolved.step,
         "greedy_trajectory": None if greedy is None else [
             {"action": a, "fitness": f, "morphology": m.to_dict()}
             for a, f, m in zip(["m0"] + greedy.actions, greedy.fitness, greedy.morphs)],
-        "best_bodies": bodylog.best_bodies(log, 10),
+        "best_bodies": evolved.best_bodies,
         "controllers": saved,
     }
     print_summary(summary, space, best.morph, greedy, episode_seconds)
