@@ -19,7 +19,8 @@ from conftest import DAMAGES, data_files, flip
 
 import evojax_morph as em
 from evojax_morph.physics import engines
-from evojax_morph.run import cli, compile_ahead, driver
+from evojax_morph.run import cli, compile_ahead
+from evojax_morph.run import confirm_stage as confirming
 from evojax_morph.run.checkpoints import (
     DAMAGED,
     FINITE,
@@ -114,7 +115,7 @@ def straight(tmp_path_factory):
         raise AssertionError("a deterministic fitness confirmed")
 
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(driver, "confirm", no_call)
+        patch.setattr(confirming, "confirm", no_call)
         assert cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)]) == 0
     return out
 

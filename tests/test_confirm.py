@@ -13,7 +13,8 @@ from conftest import truncate
 
 import evojax_morph as em
 from evojax_morph.fitnesses import table as tb
-from evojax_morph.run import bodylog, cli, driver
+from evojax_morph.run import bodylog, cli
+from evojax_morph.run import confirm_stage as confirming
 from evojax_morph.run.checkpoints import Damaged
 from evojax_morph.run.pipeline import RunConfig
 
@@ -83,7 +84,7 @@ def test_resume_of_a_finished_run_does_not_confirm_again(planted, tmp_path, monk
     def no_call(*_, **__):
         raise AssertionError("confirmed again")
 
-    monkeypatch.setattr(driver, "confirm", no_call)
+    monkeypatch.setattr(confirming, "confirm", no_call)
     assert cli.main(["--out", str(again), "--resume", "--steps", "4"]) == 0
     for name in ("summary.json", "confirmed.json"):
         assert (again / name).read_text() == (out / name).read_text()
@@ -99,7 +100,7 @@ def test_resume_of_a_finished_run_does_not_confirm_again(planted, tmp_path, monk
     truncate(again / "confirmed.json")
     cfg = RunConfig(**json.loads((again / "config.json").read_text()))
     with pytest.raises(Damaged, match=r"confirmed.json does not read \(JSONDecodeError: "):
-        driver.confirm_stage(again, None, cfg, 4)
+        confirming.confirm_record(again, None, cfg, 4)
 
 
 def test_confirm_interval_and_values(walker, tmp_path):

@@ -39,12 +39,22 @@ import threading
 import warnings
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
+from typing import NamedTuple
 
 THREAD = "evojax_morph-warmup"  # the compiling thread's name prefix
 # How long a thread may hold the GIL while another waits, while the warmup runs: MuJoCo Warp's
 # JAX call takes the GIL once a control step, so a thread in Python may delay the device by as
 # much.
 SWITCH_INTERVAL = 1e-4
+
+
+class Job(NamedTuple):
+    """A job a stage offers to do ahead: `fn` lowers a program of its, compiled on the
+    compiling thread in the order given; or, `own_thread`, a probe on a thread of its own."""
+
+    name: str
+    fn: Callable
+    own_thread: bool = False
 
 
 def enabled() -> bool:
@@ -76,6 +86,11 @@ class Warmup:
         if self.on:
             self._jobs[name] = self._pool.submit(self._lower, lower)
             self._lowering.add(name)
+
+    def collect(self, jobs: list[Job]) -> None:
+        """Takes the jobs the stages offer, in their order: it only collects them."""
+        for job in jobs:
+            (self.run if job.own_thread else self.compile)(job.name, job.fn)
 
     def start(self) -> None:
         """Lets the compiling thread begin (`wait` and `close` do too)."""

@@ -3,9 +3,9 @@
 `execute(cfg, out, resume)` runs `pipeline.build(cfg)` chunk by chunk and writes the run
 directory (`evojax_morph.run` lists its files), as stages each handing its results to the next:
 `_build`, `_warm_up` (m0 or a checkpoint, `checkpoints`), `_evolve` (the steps, then the greedy
-rollout), `_confirm` (`confirm_stage`: the bodies of the highest mean in the body log evaluated
+rollout), `confirm_stage` (the bodies of the highest mean in the body log evaluated
 again from scratch; its best is the run's best body) and `report.report_stage`. Each stage
-offers the programs it will call, which compile ahead (`compile_ahead`).
+offers the programs it will call, which compile ahead (`compile_ahead.Warmup.collect`).
 """
 
 from __future__ import annotations
@@ -22,17 +22,13 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from evojax_morph.fitnesses import get_fitness
-from evojax_morph.morphology import Morphology
 from evojax_morph.physics.engines import registered
-from evojax_morph.run import bodylog, checkpoints, saved_controllers, video
-from evojax_morph.run.compile_ahead import Warmup
-from evojax_morph.run.confirm import Confirmed, confirm, lower_confirm
+from evojax_morph.run import bodylog, checkpoints, saved_controllers
+from evojax_morph.run.compile_ahead import Job, Warmup
+from evojax_morph.run.confirm_stage import best_controllers, confirm_jobs, confirm_stage
 from evojax_morph.run.pipeline import Greedy, Pipeline, RunConfig, build, make_greedy_rollout
-from evojax_morph.run.report import confirmed_entry, report_stage
+from evojax_morph.run.report import report_jobs, report_stage
 from evojax_morph.sharding import barrier, batch_mesh, replicated, to_host
-
-CONFIRM_SALT = 0x636F6E66  # the confirm stage's key: fold_in(PRNGKey(seed), CONFIRM_SALT)
 
 
 def fresh_run_dir(cfg: RunConfig) -> Path:
@@ -90,8 +86,8 @@ class Run(NamedTuple):
 
 
 class Evolved(NamedTuple):
-    """What the evolve stage hands down: the agent state after `step` steps, its record, and
-    the trained agent's greedy rollout."""
+    """What the evolve stage hands down: the agent state after `step` steps, its record, the
+    trained agent's greedy rollout, and the best of its body log."""
 
     state: object
     step: int
@@ -99,28 +95,21 @@ class Evolved(NamedTuple):
     chunk_seconds: list[tuple[int, float]]  # (steps, wall clock) of each chunk; the first compiles
     dispatch: float | None  # seconds until the first chunk call returns (`timing`)
     greedy: Greedy | None  # None for the baselines: no policy to roll out
-
-
-class Best(NamedTuple):
-    """What the confirm stage hands down: the body the run reports as its best, and the rest."""
-
-    morph: Morphology
-    fitness: float
-    record: dict  # confirmed.json's
-    top: Confirmed | None  # the confirmed best, when evaluated now
-    saved: list[str]  # the controllers saved
+    best_bodies: list[dict] | None  # the body log's 10 of the highest mean (lead process)
+    best_draw: dict | None  # the body log's highest single draw (lead process)
 
 
 def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) -> None:
     """The run as stages: build, warm up (m0 or a checkpoint), evolve, confirm, report."""
     clock = Clock()
     run, step, state, abstract = _build(cfg, out, resume, gif)
-    compile_ahead(ahead, _evolve_jobs(run, abstract, step or 0) + _confirm_jobs(run)
-                  + _report_jobs(run))  # queued before m0's evaluation, begun after its lowering
+    # The stages' jobs, queued before m0's evaluation, begun after its lowering.
+    ahead.collect(_evolve_jobs(run, abstract, step or 0) + confirm_jobs(run)
+                  + report_jobs(run, best_controllers(cfg, run.p)))
     step, state, rows = _warm_up(run, step, state, ahead)
     clock.phase("build_and_m0")
     evolved = _evolve(run, step, state, rows, ahead, clock)
-    best = _confirm(run, evolved, ahead, clock)
+    best = confirm_stage(run, evolved, ahead, clock)
     if run.lead:
         report_stage(run, evolved, best, clock)
 
@@ -190,7 +179,7 @@ def _warm_up(run: Run, step, state, ahead: Warmup):
 def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: Clock) -> Evolved:
     """The steps from `step` to cfg.steps, chunk by chunk: metrics.csv, the body log and
     TensorBoard after each chunk, a checkpoint every cfg.checkpoint_every chunks and at the end;
-    then the trained agent's greedy rollout (an agent with a policy)."""
+    then the body log's best, and the trained agent's greedy rollout (an agent with a policy)."""
     from tensorboardX import SummaryWriter
     from tqdm import tqdm
 
@@ -224,9 +213,12 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: 
             run.manager.save(step, args=checkpoints.save_args(state))
     bar.close()
     run.manager.wait_until_finished()
+    ranked = draw = None
     if lead:
         writer.close()
         run.bodies.close()
+        path = run.out / "bodies.sqlite"
+        ranked, draw = bodylog.best_bodies(path, 10), bodylog.best_draw(path)
     clock.phase("steps")
     greedy = None
     if run.greedy_rollout is not None:
@@ -234,7 +226,7 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: 
         greedy = run.greedy_rollout(state.learner, state.first, run.key_greedy)
     barrier("body log written")  # every process reads it in the confirm stage
     clock.phase("greedy_rollout")
-    return Evolved(state, step, rows, chunk_seconds, dispatch, greedy)
+    return Evolved(state, step, rows, chunk_seconds, dispatch, greedy, ranked, draw)
 
 
 def _record_chunk(run: Run, step: int, n: int, metrics: dict, writer) -> list[dict]:
@@ -264,44 +256,6 @@ def _record_chunk(run: Run, step: int, n: int, metrics: dict, writer) -> list[di
     return rows
 
 
-def _confirm(run: Run, evolved: Evolved, ahead: Warmup, clock: Clock) -> Best:
-    """The confirm stage, the best body's and the greedy trajectory's controllers saved, and
-    confirmed.json (if confirmed now, lead process); every process calls it."""
-    p, cfg, state = run.p, run.cfg, evolved.state
-    best, best_fitness, best_params = to_host(
-        (state.best_morph, state.best_fitness, state.best_params)
-    )
-    ahead.wait("confirm")
-    record, top = confirm_stage(run.out, p, cfg, evolved.step, run.log)
-    clock.phase("confirm")
-    ahead.close()  # best.gif's replay and GL
-    best, best_fitness, best_params, best_cfg = reported_best(
-        run.out, p, record, top, (best, float(best_fitness), best_params)
-    )
-    saved = save_controllers(run.out, p, cfg.seed, best, best_fitness, best_params,
-                             evolved.greedy, best_cfg)
-    clock.phase("controllers")
-    if top is not None and run.lead:  # written last: the stage is done, a --resume keeps it
-        record["best_morphology"] = best.to_dict()
-        (run.out / "confirmed.json").write_text(json.dumps(checkpoints.seal(record), indent=1))
-    return Best(best, best_fitness, record, top, saved)
-
-
-class Job(NamedTuple):
-    """A job a stage offers to do ahead (`warmup`): `fn` lowers a program of its, compiled on
-    the compiling thread in the order given; or, `own_thread`, a probe on a thread of its own."""
-
-    name: str
-    fn: Callable
-    own_thread: bool = False
-
-
-def compile_ahead(ahead: Warmup, jobs: list[Job]) -> None:
-    """Gives `ahead` the jobs the stages offer: it only collects them."""
-    for job in jobs:
-        (ahead.run if job.own_thread else ahead.compile)(job.name, job.fn)
-
-
 def _evolve_jobs(run: Run, state, start: int) -> list[Job]:
     """The chunks of the sizes the steps from `start` take, then the greedy rollout."""
     cfg, p = run.cfg, run.p
@@ -312,123 +266,3 @@ def _evolve_jobs(run: Run, state, start: int) -> list[Job]:
         jobs.append(Job("greedy", lambda: run.greedy_rollout.lower(state.learner, state.first,
                                                                    run.key_greedy)))
     return jobs
-
-
-def _confirm_jobs(run: Run) -> list[Job]:
-    """The confirm stage's one fitness call, where it makes one."""
-    cfg, p = run.cfg, run.p
-    return [] if confirm_skipped(cfg) else [Job("confirm", lambda: lower_confirm(
-        p.space, cfg.confirm, p.fitness, cfg.confirm_controllers))]
-
-
-def _report_jobs(run: Run) -> list[Job]:
-    """best.gif's replay (of the controllers `reported_best` leaves) and its GL probes."""
-    cfg, p = run.cfg, run.p
-    if not (run.gif and run.lead):
-        return []
-    shown = p.fitness if confirm_skipped(cfg) else p.fitness.with_controllers(
-        cfg.confirm_controllers)
-    return [Job("replay", lambda: video.lower_replay(p.space, shown)),
-            Job("gl", video.choose_gl, own_thread=True)]
-
-
-def reported_best(out: Path, p: Pipeline, record: dict, top: Confirmed | None, draw: tuple):
-    """The body a run reports as its best: (morph, fitness, controllers, their fitness config).
-
-    The confirmed best `top` with its C fresh controllers, best first (best.gif replays the
-    0th); else the best of `record` confirmed when the run first finished (its controllers read
-    back from controllers/best); else, nothing confirmed, `draw`: the highest single draw's
-    (morph, fitness, controllers).
-    """
-    if top is not None:
-        params, cfg = None, p.fitness
-        if top.params is not None:
-            order = np.argsort(-top.values, kind="stable")
-            params = jax.tree.map(lambda x: x[order], top.params)
-            cfg = p.fitness.with_controllers(len(top.values))
-        return top.morph, top.mean, params, cfg
-    if record["confirmed"]:
-        morph = Morphology.from_dict(record["best_morphology"])
-        if not saved_controllers.has_controllers(p.fitness):
-            return morph, record["confirmed"][0]["mean"], None, p.fitness
-        kept = saved_controllers.load(out / saved_controllers.DIR / "best")
-        return morph, record["confirmed"][0]["mean"], kept.params, kept.fitness
-    return (*draw, p.fitness)
-
-
-def confirm_skipped(cfg: RunConfig) -> str | None:
-    """Why the confirm stage evaluates nothing (confirmed.json's note), None where it does: the
-    one place this is decided (`_confirm_jobs`, `confirm_stage`)."""
-    if cfg.confirm == 0:
-        return "not run (--confirm 0): the best body is the highest single draw, a noisy maximum"
-    if get_fitness(cfg.fitness).deterministic:
-        return (f"not run: the {cfg.fitness} fitness is deterministic, so an evaluation again "
-                "gives the same values; the best body is the highest single draw")
-    return None
-
-
-def confirm_stage(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print):
-    """The run's confirm stage; every process calls it, after the body log is written.
-
-    The `cfg.confirm` distinct bodies of the highest mean in the body log (`bodylog.
-    best_bodies`: ties to the body evaluated more often, then to the one seen first) are each
-    evaluated `cfg.confirm_controllers` times from scratch, in one fitness call (`confirm`):
-    fresh controllers, no inheritance, keys from `fold_in(PRNGKey(seed), CONFIRM_SALT)`, which
-    no other part of the run uses. Skipped, with a note saying why (`confirm_skipped`); not done
-    again when confirmed.json says it was done at this step with these settings (a --resume of
-    a finished run).
-
-    Returns:
-      (record, top): record is what confirmed.json keeps (env_steps, bodies, controllers,
-      "confirmed": summary entries best first, "confirm_note"); top is the best `Confirmed`
-      when it was evaluated now, else None.
-    """
-    n, c = cfg.confirm, cfg.confirm_controllers
-    record = {"env_steps": step, "bodies": n, "controllers": c, "confirmed": []}
-    done = out / "confirmed.json"
-    if done.exists():
-        before = checkpoints.read_sealed(done)
-        if all(before.get(k) == record[k] for k in ("env_steps", "bodies", "controllers")):
-            log("confirm: done when the run finished, kept (confirmed.json)")
-            return before, None
-    record["confirm_note"] = confirm_skipped(cfg)
-    if record["confirm_note"]:
-        if n:  # --confirm 0 said so itself
-            log(f"confirm: {record['confirm_note']}")
-        return record, None
-    path = out / "bodies.sqlite"
-    ranked = bodylog.best_bodies(path, n)
-    shapes = bodylog.shapes(path, p.space, [b["body"] for b in ranked])
-    ranked = [b for b in ranked if b["body"] in shapes]  # bodies of a run begun before shapes
-    log(f"confirm: the {len(ranked)} bodies of the highest mean, {c} fresh evaluations each...")
-    key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), CONFIRM_SALT)
-    morphs = jax.tree.map(lambda *x: np.stack(x), *[shapes[b["body"]] for b in ranked])
-    found = confirm(p.space, morphs, key, p.fitness, c)
-    in_log = {b["body"]: b for b in ranked}
-    record["confirmed"] = [confirmed_entry(f, in_log[f.body]) for f in found]
-    record["confirm_note"] = (
-        f"the {len(found)} bodies of the highest mean in the body log, each evaluated again {c} "
-        "times from scratch (fresh keys and controllers, no inheritance) in one fitness call; "
-        f"mean and 95% Student-t interval over the {c}"
-    )
-    return record, found[0]
-
-
-def save_controllers(out: Path, p: Pipeline, seed: int, best, best_fitness: float, best_params,
-                     greedy: Greedy | None, best_cfg=None) -> list[str]:
-    """controllers/best and controllers/stepT for the greedy trajectory's bodies, for a fitness
-    that trains controllers; every process calls it. best_cfg: the fitness config the best
-    body's controllers were trained under (default the run's; the confirm stage's has C
-    controllers). Returns the names saved."""
-    if not saved_controllers.has_controllers(p.fitness):
-        return []
-    bodies = [("best", best, best_params, best_fitness, best_cfg or p.fitness)]
-    if greedy is not None:
-        bodies += [(f"step{t}", m, params, f, p.fitness) for t, (m, params, f)
-                   in enumerate(zip(greedy.morphs, greedy.params, greedy.fitness))]
-    for name, morph, params, fitness, fit_cfg in bodies:
-        label = name if name == "best" else f"step {name[4:]}"
-        saved = saved_controllers.SavedController(p.space, fit_cfg, seed, morph, params, fitness,
-                                            label)
-        saved_controllers.save(out / saved_controllers.DIR / name, saved)
-    return [name for name, *_ in bodies]

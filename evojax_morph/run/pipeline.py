@@ -166,7 +166,7 @@ def make_greedy_rollout(p: Pipeline):
             params=[p0] + [at(params, i) for i in steps],
         )
 
-    def lower(learner, first, key):  # the abstract arguments (`driver.compile_ahead`)
+    def lower(learner, first, key):  # the abstract arguments (`driver._evolve_jobs`)
         place = lambda x: jax.ShapeDtypeStruct(  # noqa: E731
             x.shape, x.dtype, sharding=jax.sharding.SingleDeviceSharding(device))
         return run.lower(*jax.tree.map(place, (learner, jax.eval_shape(env0, first), key)))

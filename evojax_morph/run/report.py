@@ -1,5 +1,5 @@
-"""The end of a run: its report, printed and written (summary.json, the plots, best.gif), and
-the entries of confirmed.json and timing.json it is built from (`driver`)."""
+"""The end of a run: its report, printed and written (summary.json, the plots, best.gif,
+timing.json), from the earlier stages' results (`driver`, `confirm_stage`)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ import time
 
 import numpy as np
 
-from evojax_morph.run import bodylog, plots, video
-from evojax_morph.run.confirm import Confirmed
+from evojax_morph.fitnesses import FitnessConfig
+from evojax_morph.run import plots, video
+from evojax_morph.run.compile_ahead import Job
 from evojax_morph.run.pipeline import Greedy
 from evojax_morph.tasks import gait_word
 
@@ -30,36 +31,6 @@ def timing(total: float, chunks: list[tuple[int, float]]) -> dict:
             "outside_steps_seconds": step and round(total - step * steps, 1)}
 
 
-def confirmed_entry(found: Confirmed, logged: dict) -> dict:
-    """summary.json's entry of a confirmed body, with its mean and count in the body log."""
-    return {
-        "body": found.body,
-        "mean": found.mean,
-        "ci95": list(found.ci95),
-        "controllers": len(found.values),
-        "values": [float(v) for v in found.values],
-        "diverged": int(found.diverged.sum()),
-        "log_mean": logged["mean_fitness"],
-        "log_evaluations": logged["evaluations"],
-        **gait_entry(found),
-    }
-
-
-def gait_entry(found: Confirmed) -> dict:
-    """A confirmed body's gait over its fresh evaluations: mean distance (m) and upright (the
-    fraction of an episode before a fall), the fraction of evaluations upright the whole
-    episode, and each evaluation's; None where the fitness measures no gait."""
-    if not np.isfinite(found.distance).all():
-        return {"distance": None, "upright": None, "upright_whole": None}
-    return {
-        "distance": float(found.distance.mean()),
-        "upright": float(found.upright.mean()),
-        "upright_whole": found.upright_whole,
-        "distances": [round(float(d), 4) for d in found.distance],
-        "uprights": [round(float(u), 4) for u in found.upright],
-    }
-
-
 def walks(entry: dict, seconds: float) -> str:
     """'walks 3.1 m in 5 s, upright 100% ...' of a confirmed entry, "moves" where it does not
     walk by `locomotion.gait_word` ('' without a gait)."""
@@ -71,9 +42,18 @@ def walks(entry: dict, seconds: float) -> str:
             "its evaluations)")
 
 
+def report_jobs(run, shown: FitnessConfig) -> list[Job]:
+    """best.gif's replay of controllers trained under `shown` (those the confirm stage leaves,
+    `confirm_stage.best_controllers`) and its GL probes, for compiling ahead."""
+    if not (run.gif and run.lead):
+        return []
+    return [Job("replay", lambda: video.lower_replay(run.p.space, shown)),
+            Job("gl", video.choose_gl, own_thread=True)]
+
+
 def report_stage(run, evolved, best, clock) -> None:
     """The report stage, on the lead process, from the earlier stages' results: `run`
-    (`driver.Run`), `evolved` (`driver.Evolved`), `best` (`driver.Best`) and their `clock`
+    (`driver.Run`), `evolved` (`driver.Evolved`), `best` (`confirm_stage.Best`) and their `clock`
     (`driver.Clock`): the results (`write_results`), then timing.json."""
     write_results(run, evolved, best, clock.phase)
     times = timing(time.perf_counter() - clock.started, evolved.chunk_seconds) | {
@@ -94,19 +74,18 @@ def write_results(run, evolved, best, phase=lambda name: None) -> None:
     out, space, greedy, saved = run.out, run.p.space, evolved.greedy, best.saved
     task = run.p.fitness.task
     episode_seconds = task.episode_length * task.frame_skip * space.template.opt.timestep
-    log = out / "bodies.sqlite"
     summary = {
         "best_fitness": best.fitness,  # the confirmed mean; else (not confirmed) the best draw
         "best_morphology": best.morph.to_dict(),
         "best_body": space.canonical(best.morph),
-        "best_single_draw": bodylog.best_draw(log),
+        "best_single_draw": evolved.best_draw,
         "confirmed": best.record["confirmed"],
         "confirm_note": best.record["confirm_note"],
         "env_steps": evolved.step,
         "greedy_trajectory": None if greedy is None else [
             {"action": a, "fitness": f, "morphology": m.to_dict()}
             for a, f, m in zip(["m0"] + greedy.actions, greedy.fitness, greedy.morphs)],
-        "best_bodies": bodylog.best_bodies(log, 10),
+        "best_bodies": evolved.best_bodies,
         "controllers": saved,
     }
     print_summary(summary, space, best.morph, greedy, episode_seconds)

@@ -1,0 +1,206 @@
+"""A run's confirm stage: the bodies of the highest mean in its body log confirmed (`confirm`),
+and the body the run reports as its best chosen (`reported_best`).
+
+It writes and reads its own files, confirmed.json and the controllers of the best body and of
+the greedy trajectory (`save_controllers`), and hands the report stage a `Best`.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import numpy as np
+
+from evojax_morph.fitnesses import FitnessConfig, get_fitness
+from evojax_morph.morphology import Morphology
+from evojax_morph.run import bodylog, checkpoints, saved_controllers
+from evojax_morph.run.compile_ahead import Job
+from evojax_morph.run.confirm import Confirmed, confirm, lower_confirm
+from evojax_morph.run.pipeline import Greedy, Pipeline, RunConfig
+from evojax_morph.sharding import to_host
+
+CONFIRM_SALT = 0x636F6E66  # the confirm stage's key: fold_in(PRNGKey(seed), CONFIRM_SALT)
+
+
+class Best(NamedTuple):
+    """What the confirm stage hands down: the body the run reports as its best, and the rest."""
+
+    morph: Morphology
+    fitness: float
+    record: dict  # confirmed.json's
+    top: Confirmed | None  # the confirmed best, when evaluated now
+    saved: list[str]  # the controllers saved
+
+
+def confirm_skipped(cfg: RunConfig) -> str | None:
+    """Why the confirm stage evaluates nothing (confirmed.json's note), None where it does: the
+    one place this is decided."""
+    if cfg.confirm == 0:
+        return "not run (--confirm 0): the best body is the highest single draw, a noisy maximum"
+    if get_fitness(cfg.fitness).deterministic:
+        return (f"not run: the {cfg.fitness} fitness is deterministic, so an evaluation again "
+                "gives the same values; the best body is the highest single draw")
+    return None
+
+
+def best_controllers(cfg: RunConfig, p: Pipeline) -> FitnessConfig:
+    """The fitness config of the controllers `reported_best` leaves (best.gif replays them):
+    the confirm stage's C fresh ones, else the run's."""
+    return p.fitness if confirm_skipped(cfg) else p.fitness.with_controllers(
+        cfg.confirm_controllers)
+
+
+def confirm_jobs(run) -> list[Job]:
+    """The confirm stage's one fitness call, where it makes one, for compiling ahead."""
+    cfg, p = run.cfg, run.p
+    return [] if confirm_skipped(cfg) else [Job("confirm", lambda: lower_confirm(
+        p.space, cfg.confirm, p.fitness, cfg.confirm_controllers))]
+
+
+def confirm_stage(run, evolved, ahead, clock) -> Best:
+    """The confirm stage, from the earlier stages' results `run` (`driver.Run`) and `evolved`
+    (`driver.Evolved`): the bodies of the log confirmed (`confirm_record`), the run's best
+    chosen (`reported_best`), its and the greedy trajectory's controllers saved, and
+    confirmed.json written (if confirmed now, lead process); every process calls it."""
+    p, cfg, state = run.p, run.cfg, evolved.state
+    draw = to_host((state.best_morph, state.best_fitness, state.best_params))
+    ahead.wait("confirm")
+    record, top = confirm_record(run.out, p, cfg, evolved.step, run.log)
+    clock.phase("confirm")
+    ahead.close()  # best.gif's replay and GL
+    best, best_fitness, best_params, best_cfg = reported_best(
+        run.out, p, record, top, (draw[0], float(draw[1]), draw[2]))
+    saved = save_controllers(run.out, p, cfg.seed, best, best_fitness, best_params,
+                             evolved.greedy, best_cfg)
+    clock.phase("controllers")
+    if top is not None and run.lead:  # written last: the stage is done, a --resume keeps it
+        record["best_morphology"] = best.to_dict()
+        (run.out / "confirmed.json").write_text(json.dumps(checkpoints.seal(record), indent=1))
+    return Best(best, best_fitness, record, top, saved)
+
+
+def confirm_record(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print):
+    """The bodies of a run's log confirmed; every process calls it, after the body log is
+    written.
+
+    The `cfg.confirm` distinct bodies of the highest mean in the body log (`bodylog.
+    best_bodies`: ties to the body evaluated more often, then to the one seen first) are each
+    evaluated `cfg.confirm_controllers` times from scratch, in one fitness call (`confirm`):
+    fresh controllers, no inheritance, keys from `fold_in(PRNGKey(seed), CONFIRM_SALT)`, which
+    no other part of the run uses. Skipped, with a note saying why (`confirm_skipped`); not done
+    again when confirmed.json says it was done at this step with these settings (a --resume of
+    a finished run).
+
+    Returns:
+      (record, top): record is what confirmed.json keeps (env_steps, bodies, controllers,
+      "confirmed": summary entries best first, "confirm_note"); top is the best `Confirmed`
+      when it was evaluated now, else None.
+    """
+    n, c = cfg.confirm, cfg.confirm_controllers
+    record = {"env_steps": step, "bodies": n, "controllers": c, "confirmed": []}
+    done = out / "confirmed.json"
+    if done.exists():
+        before = checkpoints.read_sealed(done)
+        if all(before.get(k) == record[k] for k in ("env_steps", "bodies", "controllers")):
+            log("confirm: done when the run finished, kept (confirmed.json)")
+            return before, None
+    record["confirm_note"] = confirm_skipped(cfg)
+    if record["confirm_note"]:
+        if n:  # --confirm 0 said so itself
+            log(f"confirm: {record['confirm_note']}")
+        return record, None
+    path = out / "bodies.sqlite"
+    ranked = bodylog.best_bodies(path, n)
+    shapes = bodylog.shapes(path, p.space, [b["body"] for b in ranked])
+    ranked = [b for b in ranked if b["body"] in shapes]  # bodies of a run begun before shapes
+    log(f"confirm: the {len(ranked)} bodies of the highest mean, {c} fresh evaluations each...")
+    key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), CONFIRM_SALT)
+    morphs = jax.tree.map(lambda *x: np.stack(x), *[shapes[b["body"]] for b in ranked])
+    found = confirm(p.space, morphs, key, p.fitness, c)
+    in_log = {b["body"]: b for b in ranked}
+    record["confirmed"] = [confirmed_entry(f, in_log[f.body]) for f in found]
+    record["confirm_note"] = (
+        f"the {len(found)} bodies of the highest mean in the body log, each evaluated again {c} "
+        "times from scratch (fresh keys and controllers, no inheritance) in one fitness call; "
+        f"mean and 95% Student-t interval over the {c}"
+    )
+    return record, found[0]
+
+
+def confirmed_entry(found: Confirmed, logged: dict) -> dict:
+    """confirmed.json's (and summary.json's) entry of a confirmed body, with its mean and count
+    in the body log."""
+    return {
+        "body": found.body,
+        "mean": found.mean,
+        "ci95": list(found.ci95),
+        "controllers": len(found.values),
+        "values": [float(v) for v in found.values],
+        "diverged": int(found.diverged.sum()),
+        "log_mean": logged["mean_fitness"],
+        "log_evaluations": logged["evaluations"],
+        **gait_entry(found),
+    }
+
+
+def gait_entry(found: Confirmed) -> dict:
+    """A confirmed body's gait over its fresh evaluations: mean distance (m) and upright (the
+    fraction of an episode before a fall), the fraction of evaluations upright the whole
+    episode, and each evaluation's; None where the fitness measures no gait."""
+    if not np.isfinite(found.distance).all():
+        return {"distance": None, "upright": None, "upright_whole": None}
+    return {
+        "distance": float(found.distance.mean()),
+        "upright": float(found.upright.mean()),
+        "upright_whole": found.upright_whole,
+        "distances": [round(float(d), 4) for d in found.distance],
+        "uprights": [round(float(u), 4) for u in found.upright],
+    }
+
+
+def reported_best(out: Path, p: Pipeline, record: dict, top: Confirmed | None, draw: tuple):
+    """The body a run reports as its best: (morph, fitness, controllers, their fitness config),
+    chosen here alone.
+
+    The confirmed best `top` with its C fresh controllers, best first (best.gif replays the
+    0th); else the best of `record` confirmed when the run first finished (its controllers read
+    back from controllers/best); else, nothing confirmed, `draw`: the highest single draw's
+    (morph, fitness, controllers).
+    """
+    if top is not None:
+        params, cfg = None, p.fitness
+        if top.params is not None:
+            order = np.argsort(-top.values, kind="stable")
+            params = jax.tree.map(lambda x: x[order], top.params)
+            cfg = p.fitness.with_controllers(len(top.values))
+        return top.morph, top.mean, params, cfg
+    if record["confirmed"]:
+        morph = Morphology.from_dict(record["best_morphology"])
+        if not saved_controllers.has_controllers(p.fitness):
+            return morph, record["confirmed"][0]["mean"], None, p.fitness
+        kept = saved_controllers.load(out / saved_controllers.DIR / "best")
+        return morph, record["confirmed"][0]["mean"], kept.params, kept.fitness
+    return (*draw, p.fitness)
+
+
+def save_controllers(out: Path, p: Pipeline, seed: int, best, best_fitness: float, best_params,
+                     greedy: Greedy | None, best_cfg=None) -> list[str]:
+    """controllers/best and controllers/stepT for the greedy trajectory's bodies, for a fitness
+    that trains controllers; every process calls it. best_cfg: the fitness config the best
+    body's controllers were trained under (default the run's; the confirm stage's has C
+    controllers). Returns the names saved."""
+    if not saved_controllers.has_controllers(p.fitness):
+        return []
+    bodies = [("best", best, best_params, best_fitness, best_cfg or p.fitness)]
+    if greedy is not None:
+        bodies += [(f"step{t}", m, params, f, p.fitness) for t, (m, params, f)
+                   in enumerate(zip(greedy.morphs, greedy.params, greedy.fitness))]
+    for name, morph, params, fitness, fit_cfg in bodies:
+        label = name if name == "best" else f"step {name[4:]}"
+        saved = saved_controllers.SavedController(p.space, fit_cfg, seed, morph, params, fitness,
+                                                  label)
+        saved_controllers.save(out / saved_controllers.DIR / name, saved)
+    return [name for name, *_ in bodies]
