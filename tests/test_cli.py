@@ -231,7 +231,11 @@ def test_no_damaged_data_file_is_restored(tmp_path, straight, capsys):
             assert (out / DAMAGED / "9").is_dir() and not (out / "checkpoints" / "9").exists()
             reasons.append(skipped[0][1])
     printed = capsys.readouterr().out
-    assert printed.count("checkpoint 9 is damaged, skipped (") == len(reasons) >= 10
+    # Which of d/'s files the state is read from varies with how Orbax grouped its writes (here
+    # 3 to 6 of 12 to 15 files; the rest unreferenced, their damage harmless), so the count is
+    # bounded by what every save has: the digest's item and one file of arrays, each caught
+    # under every damage (a bound of 10 failed 1 run in 3).
+    assert printed.count("checkpoint 9 is damaged, skipped (") == len(reasons) >= 2 * len(DAMAGES)
     assert [r for r in reasons if r.startswith("Damaged: .learner")
             and r.endswith(": its SHA-256 is not the saved one")], reasons
 
