@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 from conftest import on_four_devices
 
+from evojax_morph.run import cli
+
 RUN_ON_FOUR = r"""
 import sys
 import jax
@@ -31,7 +33,7 @@ assert cli.main(sys.argv[1:]) == 0  # a run saved on 4 devices, resumed by the c
 @pytest.mark.slow
 def test_a_run_on_four_devices_resumes_on_one(tmp_path):
     out = tmp_path / "run"
-    cli = [
+    argv = [
         "--space",
         "bad_walker",
         "--steps",
@@ -52,7 +54,7 @@ def test_a_run_on_four_devices_resumes_on_one(tmp_path):
         "--out",
         str(out),
     ]
-    assert "on 4 cpu device(s)" in on_four_devices(RUN_ON_FOUR, *cli).stdout
+    assert "on 4 cpu device(s)" in on_four_devices(RUN_ON_FOUR, *argv).stdout
 
     # The 4-device run's outputs, then its checkpoint resumed here, on one device.
     for name in (
