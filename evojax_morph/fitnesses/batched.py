@@ -103,8 +103,9 @@ def evaluate(
 def lower_evaluate(space: Space, batch: int, cfg: FitnessConfig, mesh=None) -> list:
     """The programs `evaluate` compiles for `batch` morphologies of `space` with fresh
     controllers and one PRNG key (initialising them, if `cfg` has any, and evaluating), lowered
-    for compiling ahead (`warmup`) with the shapes and placements of such a call on one device
-    (on several, the fresh controllers come split across them, and the call compiles its own)."""
+    for compiling ahead (`compile_ahead`) with the shapes and placements of such a call on one
+    device (on several, the fresh controllers come split across them, and the call compiles
+    its own)."""
     init, evaluate_batch = _compiled(space, cfg, batch_mesh() if mesh is None else mesh)
     keys = jax.ShapeDtypeStruct((batch, 2), jnp.uint32)
     morphs = jax.eval_shape(

@@ -47,10 +47,10 @@ class Engine(NamedTuple):
       devices: a batch of bodies splits by `jax.shard_map` instead (`sharding.shard_batch`).
     graph_capture: on a GPU its step replays CUDA graphs captured from XLA's stream, which a
       compile on another thread breaks: a run compiles nothing ahead beside it, and on several
-      GPUs lowers nothing ahead either (runs there hung; `warmup`, `driver.execute`).
+      GPUs lowers nothing ahead either (runs there hung; `compile_ahead`, `driver.execute`).
     unreproducible: why a run stepping on it on a GPU is not reproducible from its seed whatever
       XLA does ("" where it is): the run then leaves XLA's deterministic ops off, which would
-      only cost time (`run.start_deterministic`).
+      only cost time (`cli.start_deterministic`).
     gpu_controllers: the controllers per body a run on a GPU trains by default
       (`Space.gpu_controllers`), spending the engine's speed on a fitness with less noise
       (docs/benchmarks.md, H100, 256 bodies of 50,000 PPO steps): 4 on the JAX engine (cv 0.23,

@@ -124,8 +124,8 @@ def callback_lock():
     `make_data` for Warp build MuJoCo Warp's host copy under `wp.ScopedDevice("cpu")`, which
     makes Warp's CPU device the default device of the whole process while they run; a Warp call
     running meanwhile on another thread would launch its kernels there (it crashed so on a GPU
-    while a run's warmup thread traced a program, `warmup`). Private to warp-lang 1.19: on a
-    version without it, the ImportError says so."""
+    while a run's compile-ahead thread traced a program, `compile_ahead`). Private to warp-lang
+    1.19: on a version without it, the ImportError says so."""
     if "warp" not in sys.modules:
         return contextlib.nullcontext()
     from warp._src.jax.ffi import _FFI_CALLBACK_LOCK

@@ -376,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
     except (checkpoints.ResumeError, checkpoints.Damaged) as e:
         # Bad input, as the parser's errors: code 2 and why (no checkpoint reads, or a file the
         # run reads back, a saved controller or confirmed.json, is damaged).
-        print(f"python -m evojax_morph.run.cli: error: {e}", file=sys.stderr)
+        print(f"python -m evojax_morph.run: error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
     return 0
 

@@ -45,9 +45,9 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     """Runs `cfg` in the directory `out` (checked writable), from its last checkpoint if
     `resume`, drawing best.gif at the end if `gif`; every process calls it, process 0 writes
     the files and prints. The programs called after m0's compile ahead (`compile_ahead`)."""
-    # Lowered on the warmup thread while m0 compiles and runs, and compiled there unless the
-    # engine captures graphs on a GPU (MuJoCo Warp), which a compile's autotuning breaks
-    # (`warmup`); on several GPUs then not even lowered ahead (runs there hung; `warmup`).
+    # Lowered on the compile-ahead thread while m0 compiles and runs, and compiled there unless
+    # the engine captures graphs on a GPU (MuJoCo Warp), which a compile's autotuning breaks
+    # (`compile_ahead`); on several GPUs then not even lowered ahead (runs there hung).
     graphs = registered(cfg.physics).graph_capture and jax.default_backend() == "gpu"
     ahead = Warmup(on=False if graphs and jax.device_count() > 1 else None, compiles=not graphs)
     try:

@@ -171,5 +171,5 @@ def make_greedy_rollout(p: Pipeline):
             x.shape, x.dtype, sharding=jax.sharding.SingleDeviceSharding(device))
         return run.lower(*jax.tree.map(place, (learner, jax.eval_shape(env0, first), key)))
 
-    rollout.lower = lower  # its program, for compiling ahead (`warmup`)
+    rollout.lower = lower  # its program, for compiling ahead (`compile_ahead`)
     return rollout

@@ -33,7 +33,7 @@ def timing(total: float, chunks: list[tuple[int, float]]) -> dict:
 
 def walks(entry: dict, seconds: float) -> str:
     """'walks 3.1 m in 5 s, upright 100% ...' of a confirmed entry, "moves" where it does not
-    walk by `locomotion.gait_word` ('' without a gait)."""
+    walk by `tasks.gait_word` ('' without a gait)."""
     if entry.get("distance") is None:
         return ""
     word = gait_word(entry["distance"], entry["upright_whole"])

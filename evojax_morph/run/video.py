@@ -117,7 +117,7 @@ def replay(saved: SavedController, key: jax.Array | None = None, controller: int
 
 def lower_replay(space, fitness):
     """The program `replay` compiles for a controller of the `fitness` config on `space`,
-    lowered for compiling ahead (`warmup`)."""
+    lowered for compiling ahead (`compile_ahead`)."""
     episode, _, init = _episode_fn(space, fitness)
     key = jax.ShapeDtypeStruct((2,), jnp.uint32)
     strong = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype)  # noqa: E731 (as read from disk)
