@@ -184,7 +184,9 @@ def unroll(name: str, of: str, args) -> bool:
     confirmed = iter(confirm(p.space, morphs, group_key(12, name), args))
     data = {"unrolls": [{"actions": u.actions,
                          "bodies": [next(confirmed) for _ in u.morphs],
-                         "inherited_fitness": u.fitness} for u in unrolls],
+                         # one fresh controller each (files before 2026-11-28 kept
+                         # "inherited_fitness", the lineage's controllers)
+                         "fresh_fitness": u.fitness} for u in unrolls],
             "confirm_controllers": args.confirm_controllers}
     path.write_text(json.dumps(record(g, args, time.time() - start, of=of, **data), indent=1))
     print(f"{name}: done in {time.time() - start:.0f} s", flush=True)

@@ -141,7 +141,7 @@ def print_summary(summary: dict, space, best, greedy: Greedy | None,
     print(f"\nbest morphology ({what}):")
     print(space.format(best))
     if greedy is not None:
-        print("\ngreedy trajectory from m0:")
+        print("\ngreedy trajectory from m0 (each body with a fresh controller):")
         for a, f in zip(["m0"] + greedy.actions, greedy.fitness):
             print(f"  {a:<32} fitness {f:.4g}")
         print(f"\nfinal greedy morphology:\n{space.format(greedy.morphs[-1])}")
