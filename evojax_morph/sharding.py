@@ -71,8 +71,9 @@ def shard_batch(fn: Callable, mesh: Mesh | None = None, manual: bool = False) ->
     if manual:  # each argument and output split on its leading axis
         # `fn` jitted on its own inside the shard_map: unjitted, MuJoCo Warp's call in it
         # segfaults jax 0.11.2's Shardy (ManualComputationUnusedInputsPattern); jitted, it
-        # compiles with jax 0.10.2, 0.11.2 and 0.12 (CPU, 2026-11-28, docs/benchmarks.md "The
-        # Warp fitness across GPUs").
+        # compiles with jax 0.10.2, 0.11.2 and 0.12 (CPU, 2026-11-28), and with 0.11.2 on 2 and 4
+        # GPUs steps each device's share as a lone GPU would (docs/benchmarks.md "The Warp fitness
+        # across GPUs").
         body = jax.shard_map(jax.jit(fn), mesh=mesh, in_specs=PartitionSpec(AXIS),
                              out_specs=PartitionSpec(AXIS), check_vma=False)
     else:

@@ -16,7 +16,7 @@ import jax
 from evojax_morph.run import cli
 
 assert jax.device_count() == 4
-# the greedy rollout, one body a call, compiles for one device (split, it hung on 2 GPUs)
+# the greedy rollout compiles for one device (split, one body a call, it hung on 2 GPUs)
 from evojax_morph.run.pipeline import RunConfig, build, make_greedy_rollout
 from evojax_morph.sharding import batch_mesh, replicated
 p = build(RunConfig(space="bad_walker", fitness="predefined", num_envs=4, horizon=2))
