@@ -4,13 +4,16 @@ every seed of the Crawler comparison in one batched program (`evojax_morph.run.s
 The study: --methods x --seeds runs, each --num-envs evolutions x --steps steps (N x T
 evaluations a run, equal for every method: evolution's re-measures of its survivors are among
 its N a step; every run also evaluates m0 N times at its start), every child of a step
-evaluated in ONE fitness call of methods x seeds x N bodies. Each run's returned body (its best
-single draw so far) is recorded after every chunk. Then every run's returned bodies at every
---curve-every evaluations (and at its end) are confirmed: --confirm-controllers controllers
-trained from scratch, with keys of their own (`confirm_keys`: the method and the seed folded
-in, so no two runs share a measurement); the best confirmed body of the whole study again with
---best-controllers. Methods are compared on the returned bodies' confirmed means with Welch
-95% intervals, Holm-corrected (`reproduce.compare_effects`).
+evaluated in ONE fitness call of methods x seeds x N bodies. A run's returned body is the body
+of the highest mean fitness over the run's evaluations so far (m0's at its start among them;
+ties to the body evaluated more often, then to the one seen first: `study.best_mean_bodies`),
+the `run` command's rule (`bodylog.best_bodies`): the fitness is noisy, and a run's best single
+draw is the luckiest of many. Every run's returned bodies at every --curve-every evaluations
+(and at its end) are confirmed: --confirm-controllers controllers trained from scratch, with
+keys of their own (`confirm_keys`: the method and the seed folded in, so no two runs share a
+measurement); the best confirmed body of the whole study again with --best-controllers.
+Methods are compared on the returned bodies' confirmed means with Welch 95% intervals,
+Holm-corrected (`reproduce.compare_effects`).
 
 A call runs the part of the seeds [--first-seed, --first-seed + --seeds) (seed s starts from
 fold_in(PRNGKey(0), s) in any part) and resumes where it stopped: the agents' states after
@@ -82,13 +85,8 @@ def run_part(args, seeds: range, part: Path, deadline: float) -> dict | None:
     cfg = run_config(args.methods[0], setup_of(args))
     methods, p = study.methods_from(cfg, args.methods)
     s = study.make_study(methods, len(seeds))
-
-    def best(states, done):
-        del done
-        return {"best": study.best_bodies(states)}
-
     res = study.run_study(s, seed_keys(seeds), args.steps, args.chunk,
-                          resume=part / "state.pkl", deadline=deadline, on_chunk=best)
+                          resume=part / "state.pkl", deadline=deadline)
     if res is None:
         return None
     print(f"seeds {seeds.start} to {seeds.stop - 1}: {s.evaluations} evaluations a call, "
@@ -99,6 +97,8 @@ def run_part(args, seeds: range, part: Path, deadline: float) -> dict | None:
         return None
     runs = []
     for m in methods:
+        ends = study.best_mean_bodies(res["metrics"][m.name], args.steps,
+                                      res["states"][m.name].first)
         for i, seed in enumerate(seeds):
             mine = [(b, c) for b, c in zip(bodies, confirmed["found"], strict=True)
                     if (b["method"], b["seed"]) == (m.name, seed)]
@@ -107,6 +107,7 @@ def run_part(args, seeds: range, part: Path, deadline: float) -> dict | None:
                 "method": m.name, "seed": seed,
                 "agent_settings": dataclasses.asdict(settings) if settings is not None else {},
                 "returned": next(c for b, c in mine if args.steps * args.num_envs in b["at"]),
+                "returned_mean": ends[i]["mean"], "returned_draws": ends[i]["draws"],
                 "returned_draw": float(res["states"][m.name].best_fitness[i]),
                 "curve": sorted((e, c["mean"]) for b, c in mine for e in b["at"]),
                 "distinct_bodies": distinct_bodies(res["metrics"][m.name]["signature"])[i],
@@ -122,24 +123,25 @@ def run_part(args, seeds: range, part: Path, deadline: float) -> dict | None:
 
 
 def returned_bodies(space, res, seeds: range, args) -> list[dict]:
-    """Every (method, seed)'s returned body at each curve point (every --curve-every
-    evaluations, and the end), equal bodies of a run confirmed once: [{method, seed,
-    index (its distinct bodies' order), morph, at: [evaluations]}]."""
+    """Every (method, seed)'s returned body (`study.best_mean_bodies`) at each curve point
+    (every --curve-every evaluations, and the end), equal bodies of a run confirmed once:
+    [{method, seed, index (its distinct bodies' order), morph, at: [evaluations]}]."""
     n = args.num_envs
     every = max(args.curve_every // n, 1) * n
-    points = [a for a in res["at_chunks"] if (a["steps"] * n) % every == 0
-              or a["steps"] == args.steps]
+    points = [t for t in range(args.steps + 1) if (t * n) % every == 0 or t == args.steps]
     found = []
     for m in args.methods:
+        at = {t: study.best_mean_bodies(res["metrics"][m], t, res["states"][m].first)
+              for t in points}
         for i, seed in enumerate(seeds):
             mine = {}
-            for a in points:
-                morph = jax.tree.map(lambda x, i=i: np.asarray(x[i]), a["best"][m])
+            for t in points:
+                morph = at[t][i]["morph"]
                 name = space.canonical(morph)
                 if name not in mine:
                     mine[name] = {"method": m, "seed": seed, "index": len(mine), "body": name,
                                   "morph": morph, "at": []}
-                mine[name]["at"].append(a["steps"] * n)
+                mine[name]["at"].append(t * n)
             found += mine.values()
     return found
 
@@ -207,6 +209,8 @@ def summary(parts: list[dict], best: dict, args) -> dict:
         runs[m] = {
             "agent": m, "seeds": len(mine), "agent_settings": mine[0]["agent_settings"],
             "returned": [r["returned"] for r in mine],
+            "returned_mean": [r["returned_mean"] for r in mine],
+            "returned_draws": [r["returned_draws"] for r in mine],
             "returned_draw": [r["returned_draw"] for r in mine],
             "curve": [{"evaluations": e, "confirmed": [dict(r["curve"])[e] for r in mine]}
                       for e in points],

@@ -2,12 +2,15 @@
 training): each method's seeds run as its agent runs them alone, in one fitness call a step."""
 
 import json
+from types import SimpleNamespace
 
 import jax
 import numpy as np
 import pytest
 
+import evojax_morph as em
 from evojax_morph import agents
+from evojax_morph.fitnesses.table import signature
 from evojax_morph.run import study
 from evojax_morph.run.pipeline import RunConfig
 from experiments import common, crawler_study
@@ -109,6 +112,39 @@ def test_an_experiments_agent_runs_as_a_study_of_one_method(tmp_path):
     assert len(res["best_bodies"]) == SEEDS
 
 
+def test_a_run_returns_its_body_of_the_highest_mean_not_its_best_draw():
+    """`study.best_mean_bodies` on hand-made draws: seed 0's best draw (A, 10) is luck, A's mean
+    5; B and C both mean 7, B drawn 3 times, C once and first: B. Seed 1: E and F both mean 3
+    in 2 draws, E seen first; D's NaN puts it last despite its 100. Steps after `upto_steps`
+    are not counted; the start (`first`) is, before step 0, its bodies told apart by their
+    signature."""
+    a, b, c, d, e, f = range(6)
+    bodies = np.array([[[a, c], [d, e]], [[b, a], [f, e]], [[b, b], [f, d]]])  # (T, S, N)
+    fitness = np.array([[[10, 7], [np.nan, 1]], [[7, 0], [3, 5]], [[7, 7], [3, 100]]])
+    metrics = {"signature": np.stack([bodies, bodies], -1).astype(np.uint32),
+               "fitness": fitness.astype(np.float32), "morph": bodies}
+    found = study.best_mean_bodies(metrics, 3)
+    assert [(r["morph"], r["mean"], r["draws"]) for r in found] == [(b, 7, 3), (e, 3, 2)]
+    np.testing.assert_array_equal(found[0]["signature"], [b, b])
+    assert bodies[:, 0].flat[np.nanargmax(fitness[:, 0])] == a  # the best single draw's
+    assert [r["morph"] for r in study.best_mean_bodies(metrics, 2)] == [c, e]  # 7 once, first
+    assert [r["morph"] for r in study.best_mean_bodies(metrics, 1)] == [a, e]
+
+    m0 = em.make_space("bad_walker").initial()
+    x = m0.replace(attrs=m0.attrs + 0.5)
+    first = SimpleNamespace(morph=em.stack([em.stack([m0, m0])]), fitness=np.array([[4.0, 4]]))
+    children = em.stack([em.stack([em.stack([x, m0])])])  # (T=1, S=1, N=2)
+    metrics = {"signature": np.asarray(jax.vmap(jax.vmap(jax.vmap(signature)))(children)),
+               "fitness": np.array([[[5.0, 1]]]), "morph": children}
+    (start,) = study.best_mean_bodies(metrics, 0, first)
+    (end,) = study.best_mean_bodies(metrics, 1, first)
+    assert (start["draws"], start["mean"], end["draws"], end["mean"]) == (2, 4, 1, 5)
+    np.testing.assert_array_equal(start["morph"].attrs, m0.attrs)
+    np.testing.assert_array_equal(end["morph"].attrs, x.attrs)
+    (m0_mean,) = study.best_mean_bodies({**metrics, "fitness": np.array([[[2.0, 4]]])}, 1, first)
+    assert (m0_mean["draws"], m0_mean["mean"]) == (3, 4)  # m0's 3 draws, its child's among them
+
+
 def test_every_run_and_body_confirms_with_keys_of_its_own():
     """No two runs (method, seed) of the study, nor two returned bodies of a run, share a
     confirming key; a body's controllers each take their own."""
@@ -130,5 +166,7 @@ def test_the_toy_study_leaves_every_method_its_seeds_at_equal_evaluations(tmp_pa
         assert r["curve"][-1]["evaluations"] == data["evaluations_per_run"] == 4 * 6
         assert all(len(p["confirmed"]) == 2 for p in r["curve"])
         assert {"distance", "upright", "upright_whole"} <= set(r["returned"][0])
+        assert len(r["returned_mean"]) == len(r["returned_draws"]) == 2
+        assert all(n >= 1 for n in r["returned_draws"])
     assert all("p_holm" in d for d in data["effects"]["differences"].values())
     assert (tmp_path / "study_bad_walker_distance.png").stat().st_size > 0

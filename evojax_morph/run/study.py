@@ -20,7 +20,7 @@ import pickle
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -29,10 +29,12 @@ import numpy as np
 from evojax_morph import agents
 from evojax_morph.agents.base import Policy, make_steps
 from evojax_morph.fitnesses.table import signature
-from evojax_morph.mdp import EvolutionEnv
+from evojax_morph.mdp import EvolutionEnv, EvoState
 from evojax_morph.run.checkpoints import write_atomic
 from evojax_morph.run.pipeline import Pipeline, RunConfig, agent_config, build
 from evojax_morph.sharding import jit_replicated, to_host
+
+_signatures = jax.jit(jax.vmap(jax.vmap(signature)))  # (S, N, ...) bodies -> (S, N, 2)
 
 
 class Method(NamedTuple):
@@ -47,8 +49,10 @@ class Study(NamedTuple):
     """init(keys (S,)) -> states, {method: AgentState (S, ...)}: seed s of every method starts
     from keys[s], as `from_policy`'s `init(keys[s])` would alone. chunk(states, num_steps) ->
     (states, metrics): {method: its agent's metrics (num_steps, S, ...), "bodies" left out,
-    with "signature" (num_steps, S, N_m, 2) uint32: each child's `table.signature`}.
-    evaluations: bodies a study step evaluates (one fitness call): sum_m S x N_m."""
+    with "signature" (num_steps, S, N_m, 2) uint32: each child's `table.signature`, and "morph"
+    (num_steps, S, N_m, ...): each child, to recover a body from its signature
+    (`best_mean_bodies`)}. evaluations: bodies a study step evaluates (one fitness call):
+    sum_m S x N_m."""
 
     init: Callable
     chunk: Callable
@@ -116,12 +120,14 @@ def make_study(methods: Sequence[Method], seeds: int, fitness_fn: Callable | Non
         for m, s, p, out in zip(methods, steps, props, outs):
             new[m.name], mm = jax.vmap(s.absorb)(states[m.name], p, out)
             mm = {k: v for k, v in mm.items() if k != "bodies"}
-            mm["signature"] = jax.vmap(jax.vmap(signature))(p.morphs)
+            mm["signature"] = _signatures(p.morphs)
+            mm["morph"] = p.morphs
             metrics[m.name] = mm
         return new, metrics
 
     def chunk(states: dict, num_steps: int):
-        """`num_steps` study steps in one `lax.scan`; metrics stacked along a leading axis."""
+        """`num_steps` study steps in one `lax.scan`; metrics stacked along a leading axis
+        (each method's children among them: their "signature" and "morph")."""
         return jax.lax.scan(step, states, length=num_steps)
 
     init, chunk = jit_replicated(init, chunk, mesh)
@@ -131,21 +137,20 @@ def make_study(methods: Sequence[Method], seeds: int, fitness_fn: Callable | Non
 
 def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
               resume: Path | None = None, deadline: float | None = None,
-              on_chunk: Callable | None = None, since: float | None = None) -> dict | None:
+              since: float | None = None) -> dict | None:
     """The study's host loop from the seeds' `keys` (S,): `num_steps` steps in chunks of
     `chunk`, resumable.
 
     With `resume`, the states and metrics so far are saved there after the start and after
     every chunk (a pickle, written beside and renamed over: a call stopped mid-write leaves
     the last whole save) and picked up by the next call; past `deadline` (time.time()) it
-    returns None after the chunk in progress, to be called again. on_chunk(states, done) ->
-    a dict kept under "at_chunks" (e.g. each run's best body at that point). since: when this
-    call's work began (time.time(), e.g. before building the study; default: now).
+    returns None after the chunk in progress, to be called again. since: when this call's work
+    began (time.time(), e.g. before building the study; default: now).
 
     Returns:
       {"metrics": {method: {name: (num_steps, S, ...)}}, "states": the final states (host),
-      "at_chunks": [on_chunk's dicts, with "steps": steps done], "chunk_seconds": [the wall
-      clock of each compiled chunk call], "chunk_steps": [the steps of each],
+      "chunk_seconds": [the wall clock of each compiled chunk call], "chunk_steps": [the steps
+      of each],
       "evaluations_per_second": the study's evaluations over those seconds, "init_seconds":
       the start's call, compile included, "seconds": every call's wall clock from its
       `since`, compiles included}.
@@ -155,10 +160,8 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
     if so_far is None:
         start = time.perf_counter()
         states = jax.block_until_ready(study.init(keys))
-        so_far = {"metrics": [], "at_chunks": [], "chunk_seconds": [], "chunk_steps": [],
-                  "done": 0, "seconds": 0.0, "init_seconds": time.perf_counter() - start}
-        if on_chunk is not None:
-            so_far["at_chunks"].append({"steps": 0, **on_chunk(to_host(states), 0)})
+        so_far = {"metrics": [], "chunk_seconds": [], "chunk_steps": [], "done": 0,
+                  "seconds": 0.0, "init_seconds": time.perf_counter() - start}
     else:
         states = so_far.pop("states")
 
@@ -182,17 +185,12 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
         so_far["chunk_steps"].append(n)
         so_far["metrics"].append(to_host(metrics))
         so_far["done"] += n
-        if on_chunk is not None:
-            so_far["at_chunks"].append({"steps": so_far["done"],
-                                        **on_chunk(to_host(states), so_far["done"])})
         keep()
-    cat = {m: {k: np.concatenate([c[m][k] for c in so_far["metrics"]])
-               for k in so_far["metrics"][0][m]} for m in study.methods}
+    cat = jax.tree.map(lambda *xs: np.concatenate(xs), *so_far["metrics"])
     timed = float(np.sum(so_far["chunk_seconds"]))
     return {
         "metrics": cat,
         "states": to_host(states),
-        "at_chunks": so_far["at_chunks"],
         "chunk_seconds": so_far["chunk_seconds"],
         "chunk_steps": so_far["chunk_steps"],
         "evaluations_per_second": study.evaluations * sum(so_far["chunk_steps"]) / timed,
@@ -201,6 +199,46 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
     }
 
 
-def best_bodies(states: dict) -> dict[str, Any]:
-    """{method: (S, ...) each run's best body so far (its best single draw), host-side}."""
-    return {m: jax.device_get(s.best_morph) for m, s in states.items()}
+def best_mean_bodies(metrics: dict, upto_steps: int,
+                     first: EvoState | None = None) -> list[dict]:
+    """Each run's body of the highest mean fitness over its evaluations so far, the rule of the
+    run command's body log (`bodylog.best_bodies`): ties go to the body evaluated more often,
+    then to the one seen first. Bodies are told apart by their signature. Every draw counts at
+    the fitness it got, a diverged simulation's too (its fitness is finite, its reward zeroed:
+    `FitnessResult.diverged`), as the log keeps it; a NaN (which the log refuses) makes its
+    body's mean NaN, ranked below every other.
+
+    Args:
+      metrics: one method's study metrics, host-side: "signature" (T, S, N, 2) uint32,
+        "fitness" (T, S, N) and "morph" (T, S, N, ...).
+      upto_steps: the steps [0, upto_steps) counted.
+      first: the method's `AgentState.first` (S, N), host-side: m0 as the start evaluated it,
+        counted before step 0 (the log's step 0); None: not counted. A run needs one draw.
+
+    Returns:
+      per seed {"morph": the body (host-side), "mean": its mean fitness, "draws": its
+      evaluations, "signature": (2,) uint32}.
+    """
+    sig = np.asarray(metrics["signature"][:upto_steps])
+    fit = np.asarray(metrics["fitness"][:upto_steps])
+    morphs = jax.tree.map(lambda x: np.asarray(x[:upto_steps]), metrics["morph"])
+    if first is not None:  # one step more, before the others
+        sig = np.concatenate([np.asarray(_signatures(first.morph))[None], sig])
+        fit = np.concatenate([np.asarray(first.fitness)[None], fit])
+        morphs = jax.tree.map(lambda a, b: np.concatenate([np.asarray(a)[None], b]),
+                              first.morph, morphs)
+    found = []
+    for s in range(sig.shape[1]):  # a seed's draws in the order they were made
+        names, seen, which = np.unique(sig[:, s].reshape(-1, 2), axis=0, return_index=True,
+                                       return_inverse=True)
+        which = which.reshape(-1)
+        draws = np.bincount(which)
+        mean = np.bincount(which, weights=fit[:, s].reshape(-1).astype(np.float64)) / draws
+        nan = np.isnan(mean)
+        # the last key sorts first: numbers before NaN, mean desc, draws desc, first seen asc
+        b = np.lexsort((seen, -draws, -np.where(nan, 0.0, mean), nan))[0]
+        at = np.unravel_index(seen[b], (sig.shape[0], sig.shape[2]))  # its first draw: step, child
+        morph = jax.tree.map(lambda x, s=s, at=at: x[at[0], s, at[1]], morphs)
+        found.append({"morph": morph, "mean": float(mean[b]), "draws": int(draws[b]),
+                      "signature": names[b]})
+    return found
