@@ -146,6 +146,7 @@ def test_resume_matches_an_uninterrupted_run(tmp_path, straight):
                                  "controllers", "results", "best_gif"]
     assert abs(sum(t["phases"].values()) - t["seconds"]) < 0.5, t  # the phases fill the call
     assert 0 <= t["first_chunk_dispatch"] <= t["phases"]["steps"], t
+    assert t["where"]["devices"] == jax.device_count() and t["where"]["physics"] == "jax", t
     assert json.loads((split / "config.json").read_text())["physics"] == "jax"  # auto on a CPU
     assert (straight / "metrics.csv").read_text() == (split / "metrics.csv").read_text()
     assert log_rows(split) == log_rows(straight)

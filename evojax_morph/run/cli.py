@@ -4,7 +4,7 @@ Each environment step mutates the body of every parallel evolution once and eval
 children in one batched fitness call; the agent learns which mutations raise fitness. The run
 directory gets config.json, metrics.csv, bodies.sqlite (every body evaluated), TensorBoard
 events (tb/), curve.png, trajectory.png, best.xml, summary.json, timing.json (where the wall
-clock went) and Orbax checkpoints, and with
+clock went, and on what) and Orbax checkpoints, and with
 the ppo fitness controllers/ (the best body's and the greedy trajectory's, for
 `python -m evojax_morph.render`) and best.gif; --resume continues a run from its last checkpoint.
 At the end the --confirm bodies of the highest mean fitness in the body log are evaluated again

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import time
 
+import jax
 import numpy as np
 
 from evojax_morph.fitnesses import FitnessConfig
@@ -29,6 +30,15 @@ def timing(total: float, chunks: list[tuple[int, float]]) -> dict:
     step = float(np.median([s / n for n, s in chunks[1:]])) if chunks[1:] else None
     return {"seconds": round(total, 1), "steps": steps, "step_seconds": step and round(step, 3),
             "outside_steps_seconds": step and round(total - step * steps, 1)}
+
+
+def where(cfg) -> dict:
+    """What timing.json's seconds ran on: the devices (the fitness batch splits across all of
+    them, `sharding`), the engine, the batch and jax's version."""
+    device = jax.devices()[0]
+    return {"devices": jax.device_count(), "processes": jax.process_count(),
+            "device": f"{device.platform}: {device.device_kind}", "physics": cfg.physics,
+            "num_envs": cfg.num_envs, "controllers": cfg.controllers, "jax": jax.__version__}
 
 
 def walks(entry: dict, seconds: float) -> str:
@@ -57,7 +67,8 @@ def report_stage(run, evolved, best, clock) -> None:
     (`driver.Clock`): the results (`write_results`), then timing.json."""
     write_results(run, evolved, best, clock.phase)
     times = timing(time.perf_counter() - clock.started, evolved.chunk_seconds) | {
-        "phases": clock.phases, "first_chunk_dispatch": evolved.dispatch}
+        "phases": clock.phases, "first_chunk_dispatch": evolved.dispatch,
+        "where": where(run.cfg)}
     (run.out / "timing.json").write_text(json.dumps(times, indent=1))
     if times["step_seconds"]:
         print(f"time: {times['seconds']:.0f} s, {times['step_seconds']:.3g} s a step, "
