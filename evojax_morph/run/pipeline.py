@@ -129,8 +129,8 @@ def make_greedy_rollout(p: Pipeline):
     start), the agent's greedy mutations, then every body of the trajectory, m0 too, evaluated
     with a fresh controller in ONE fitness call. The mutations need no fitness (an observation
     is the body and the progress), so the horizon's bodies come first and their evaluations
-    run side by side, not one body a call (8 one-body calls took 32 s at Bad Walker's
-    50,000 PPO steps and 117 s at the Constructor's 100,000 on an H100, issue 61).
+    run side by side, not one body a call (one-body calls took 32 s for Bad Walker's 5 at
+    50,000 PPO steps and 117 s for the Constructor's 8 at 100,000 on an H100, issue 61).
     A fresh controller (trained from scratch, as the confirm stage's) is the measurement
     the run's own steps are not: there a child inherits its parent's. Compiled once, reused
     across calls, on the first device of this process (`build`)."""
