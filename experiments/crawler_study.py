@@ -86,7 +86,8 @@ def run_part(args, seeds: range, part: Path, deadline: float) -> dict | None:
     methods, p = study.methods_from(cfg, args.methods)
     s = study.make_study(methods, len(seeds))
     res = study.run_study(s, seed_keys(seeds), args.steps, args.chunk,
-                          resume=part / "state.pkl", deadline=deadline)
+                          resume=part / "state.pkl", deadline=deadline,
+                          log=lambda line: print(line, flush=True))
     if res is None:
         return None
     print(f"seeds {seeds.start} to {seeds.stop - 1}: {s.evaluations} evaluations a call, "
@@ -164,6 +165,8 @@ def confirm_all(space, fit_cfg, bodies: list[dict], path: Path, args,
         done["found"] += [entry(f) for f in found]
         done["seconds"] += time.time() - start
         write_atomic(path, pickle.dumps(done))
+        print(f"confirmed {len(done['found'])} of {len(bodies)} returned bodies "
+              f"({c} controllers each), {done['seconds']:.0f} s", flush=True)
     return done
 
 

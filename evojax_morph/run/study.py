@@ -137,7 +137,7 @@ def make_study(methods: Sequence[Method], seeds: int, fitness_fn: Callable | Non
 
 def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
               resume: Path | None = None, deadline: float | None = None,
-              since: float | None = None) -> dict | None:
+              since: float | None = None, log: Callable | None = None) -> dict | None:
     """The study's host loop from the seeds' `keys` (S,): `num_steps` steps in chunks of
     `chunk`, resumable.
 
@@ -145,7 +145,8 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
     every chunk (a pickle, written beside and renamed over: a call stopped mid-write leaves
     the last whole save) and picked up by the next call; past `deadline` (time.time()) it
     returns None after the chunk in progress, to be called again. since: when this call's work
-    began (time.time(), e.g. before building the study; default: now).
+    began (time.time(), e.g. before building the study; default: now). log: called with a
+    line of progress after every chunk (e.g. `print`).
 
     Returns:
       {"metrics": {method: {name: (num_steps, S, ...)}}, "states": the final states (host),
@@ -186,6 +187,10 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
         so_far["metrics"].append(to_host(metrics))
         so_far["done"] += n
         keep()
+        if log is not None:
+            log(f"study step {so_far['done']} of {num_steps}: {so_far['chunk_seconds'][-1]:.1f} s "
+                f"for {n} ({study.evaluations * n / so_far['chunk_seconds'][-1]:.1f} "
+                "evaluations/s)")
     cat = jax.tree.map(lambda *xs: np.concatenate(xs), *so_far["metrics"])
     timed = float(np.sum(so_far["chunk_seconds"]))
     return {
