@@ -243,3 +243,29 @@ def test_every_agent_shapes_masks_and_one_trace(name):
     assert (state.evo.morph.parent[:, 1:] <= 0).all()  # every limb hangs from the root
     if agent.scores is not None:
         assert agent.scores(state.learner, env.observe(state.evo)).shape == (n, p.space.num_actions)
+
+
+def test_greedy_rollout_is_the_step_by_step_greedy_walk():
+    """`make_greedy_rollout` (the mutations first, then every body in one fitness call) against
+    the agent's greedy walk stepped one `env.step` at a time, on the deterministic predefined
+    fitness, where a fresh controller and an inherited one score a body alike: the same bodies,
+    actions and fitness, m0 first."""
+    from evojax_morph.run.pipeline import make_greedy_rollout
+
+    p = build(RunConfig(space="bad_walker", fitness="predefined", num_envs=4, horizon=4,
+                        hidden=16, learning_starts=4, explore_steps=2))
+    state, _ = p.agent.chunk(jax.jit(p.agent.init)(jax.random.PRNGKey(0)), 8)
+    got = make_greedy_rollout(p)(state.learner, state.first, jax.random.PRNGKey(1))
+
+    env, evo = p.greedy_env, jax.tree.map(lambda x: x[:1], state.first)
+    want = [(evo.morph, evo.fitness[0])]
+    for k in range(env.horizon):
+        obs = env.observe(evo)
+        action = masked_argmax(p.agent.scores(state.learner, obs), obs.mask)
+        _, evo, *_ = env.step(jax.random.PRNGKey(k), evo, action)
+        want.append((evo.morph, evo.fitness[0]))
+    names = [p.space.canonical(jax.tree.map(lambda x: x[0], m)) for m, _ in want]
+    assert [p.space.canonical(m) for m in got.morphs] == names
+    assert len(set(names)) > 1  # the walk moves: the check compares more than m0
+    np.testing.assert_allclose(got.fitness, [float(f) for _, f in want], rtol=1e-6)
+    assert len(got.actions) == env.horizon and len(got.params) == env.horizon + 1
