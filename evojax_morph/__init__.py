@@ -5,6 +5,7 @@ from evojax_morph.fitnesses import FitnessConfig, FitnessResult, list_fitnesses,
 from evojax_morph.fitnesses.batched import evaluate, init_params
 from evojax_morph.morphology import Morphology, format_tree, stack, unstack
 from evojax_morph.physics.determinism import (
+    all_reduce_workaround,
     cpu_scheduler_workaround,
     deterministic_gpu,
     persistent_cache,
@@ -21,14 +22,16 @@ from evojax_morph.sharding import batch_mesh, init_distributed
 from evojax_morph.spaces import Space, list_spaces, make_space
 from evojax_morph.tasks import Locomotion, TaskConfig, list_tasks, make_task
 
-# The one side effect of importing evojax_morph, and it must stay here: XLA's CPU runtime of
-# this jaxlib (0.10.2) can deadlock running a large vmapped MJX program (the Constructor's
-# template, 50 bodies: determinism.py), and XLA reads XLA_FLAGS once, when the first backend
-# starts, so the flag must be in before any user code runs JAX. It only appends
-# `determinism.CPU_FLAG`, and nothing where XLA_FLAGS already sets that scheduler or a backend
-# is up (tests/test_determinism.py). Matplotlib's backend is left alone: the figures draw with
-# Agg canvases of their own (`plots`, `video`).
+# The one side effect of importing evojax_morph, and it must stay here: two XLA flags. XLA's
+# CPU runtime of jaxlib 0.10.2 can deadlock running a large vmapped MJX program (the
+# Constructor's template, 50 bodies), and XLA's one-shot all-reduce failed on 2 GPUs with jax
+# 0.12.0 (determinism.py says both). XLA reads XLA_FLAGS once, when the first backend starts, so
+# the flags must be in before any user code runs JAX. It only appends `determinism.CPU_FLAG` and
+# `ALL_REDUCE_FLAG`, each where XLA_FLAGS does not set it already and no backend is up
+# (tests/test_determinism.py). Matplotlib's backend is left alone: the figures draw with Agg
+# canvases of their own (`plots`, `video`).
 cpu_scheduler_workaround()
+all_reduce_workaround()
 
 __all__ = [
     "Confirmed",
@@ -41,6 +44,7 @@ __all__ = [
     "SavedController",
     "Space",
     "TaskConfig",
+    "all_reduce_workaround",
     "batch_mesh",
     "best_bodies",
     "confirm",

@@ -81,9 +81,10 @@ print(json.dumps([b, matplotlib.get_backend(), f, os.environ.get("XLA_FLAGS")]))
 
 def test_import_leaves_matplotlib_and_xla_flags_as_they_were(tmp_path):
     """`import evojax_morph` (and a figure drawn) keeps the importer's matplotlib backend, and
-    XLA_FLAGS as they were but for the CPU scheduler flag (`cpu_scheduler_workaround`, said in
-    evojax_morph/__init__.py), appended only where XLA_FLAGS does not set that scheduler."""
-    from evojax_morph.physics.determinism import CPU_FLAG
+    XLA_FLAGS as they were but for the CPU scheduler and all-reduce flags
+    (`cpu_scheduler_workaround`, `all_reduce_workaround`, said in evojax_morph/__init__.py), each
+    appended only where XLA_FLAGS does not set it."""
+    from evojax_morph.physics.determinism import ALL_REDUCE_FLAG, CPU_FLAG
 
     def imported(xla_flags: str | None) -> list:
         env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "MPLBACKEND")}
@@ -95,10 +96,11 @@ def test_import_leaves_matplotlib_and_xla_flags_as_they_were(tmp_path):
         assert proc.returncode == 0, proc.stderr[-2000:]
         return json.loads(proc.stdout.splitlines()[-1])
 
-    own = "--xla_cpu_enable_concurrency_optimized_scheduler=true --xla_cpu_use_thunk_runtime=true"
+    own = ("--xla_cpu_enable_concurrency_optimized_scheduler=true "
+           "--xla_gpu_unsupported_use_all_reduce_one_shot_kernel=true")
     assert imported(own) == ["svg", "svg", own, own]
-    assert imported(None) == ["svg", "svg", None, CPU_FLAG]
+    assert imported(None) == ["svg", "svg", None, f"{CPU_FLAG} {ALL_REDUCE_FLAG}"]
     assert imported("--xla_cpu_use_thunk_runtime=true") == [
         "svg", "svg", "--xla_cpu_use_thunk_runtime=true",
-        f"--xla_cpu_use_thunk_runtime=true {CPU_FLAG}"]
+        f"--xla_cpu_use_thunk_runtime=true {CPU_FLAG} {ALL_REDUCE_FLAG}"]
     assert (tmp_path / "c.png").read_bytes()[:4] == b"\x89PNG"

@@ -15,6 +15,14 @@ thread waits on a condition variable and the call never returns. Reproduced here
 Constructor's 82-geom template: 300 steps of 48 bodies run, 50 bodies hang, every time, while
 either body alone runs. `--xla_cpu_enable_concurrency_optimized_scheduler=false` (XLA's older
 thunk scheduler) runs it, and no slower.
+
+GPU runs whose small sums across devices finish (`all_reduce_workaround`, asked for when
+evojax_morph is imported). With jax 0.12.0 on 2 H200s, XLA's one-shot all-reduce kernel failed in
+`em.evaluate` of 3 bodies split over 2 GPUs (tests/test_warp.py::test_ppo_fitness_on_warp):
+"NCCL operation ncclGetPeerDevicePointer(...) failed: unhandled system error". With
+`--xla_gpu_unsupported_use_all_reduce_one_shot_kernel=false` (NCCL's all-reduce instead) the test
+passed (docs/benchmarks.md, 2026-11-28). The flag changes only how XLA sums small arrays across
+GPUs; every jaxlib this library supports (0.10 to 0.12) knows it, and a CPU run ignores it.
 """
 
 from __future__ import annotations
@@ -25,6 +33,7 @@ from jax._src import xla_bridge
 
 FLAG = "--xla_gpu_deterministic_ops=true"
 CPU_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+ALL_REDUCE_FLAG = "--xla_gpu_unsupported_use_all_reduce_one_shot_kernel=false"
 CACHE = "~/.cache/evojax_morph/jax"  # persistent_cache's default
 
 
@@ -57,6 +66,14 @@ def cpu_scheduler_workaround() -> bool:
     A no-op if XLA_FLAGS already sets the scheduler either way, or if a backend has started.
     """
     return _ask(CPU_FLAG)
+
+
+def all_reduce_workaround() -> bool:
+    """Asks XLA for NCCL's all-reduce in place of its one-shot kernel (see the module docstring).
+
+    A no-op if XLA_FLAGS already sets that kernel either way, or if a backend has started.
+    """
+    return _ask(ALL_REDUCE_FLAG)
 
 
 def full_precision() -> None:
