@@ -70,7 +70,8 @@ def kept_record(out: Path, cfg: RunConfig, step: int) -> dict | None:
 def confirms_now(run, step: int) -> bool:
     """Whether the confirm stage of `run` (`driver.Run`) ending at `step` evaluates bodies:
     not skipped (`confirm_skipped`), not kept (`kept_record`). Then the greedy trajectory's
-    bodies join its fitness call; else `driver` evaluates them apart."""
+    bodies join its fitness call; else they have one of their own
+    (`pipeline.make_greedy_evaluation`)."""
     return not confirm_skipped(run.cfg) and kept_record(run.out, run.cfg, step) is None
 
 

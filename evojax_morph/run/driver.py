@@ -5,8 +5,8 @@ directory (`evojax_morph.run` lists its files), as stages each handing its resul
 `_build`, `_warm_up` (m0 or a checkpoint, `checkpoints`), `_evolve` (the steps, then the greedy
 walk from m0), `confirm_stage` (the bodies of the highest mean in the body log evaluated
 again from scratch, the greedy trajectory's in the same call; its best is the run's best body)
-and `report.report_stage`. Each stage
-offers the programs it will call, which compile ahead (`compile_ahead.Warmup.collect`).
+and `report.report_stage`. Each stage offers the programs it will call, which compile ahead
+(`compile_ahead.Warmup.collect`).
 """
 
 from __future__ import annotations

@@ -113,7 +113,8 @@ class Greedy(NamedTuple):
     morphs: list  # the bodies (`Morphology`, on the host)
     fitness: list[float] | None  # each body's mean over its fresh controllers; None: not evaluated
     actions: list[str]  # the horizon mutations, named (`action_name`)
-    params: list | None  # each body's controllers (trained, for the PPO fitness), best first
+    params: list | None  # each body's controllers (trained, for the PPO fitness); where
+    # confirmed, best first
     controllers: int | None = None  # the fresh controllers a body's fitness is the mean of;
     # None: the run's K
     confirmed: bool = False  # evaluated in the confirm stage's call, C controllers a body
