@@ -243,7 +243,8 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: 
         ahead.wait("greedy")
         greedy = run.greedy_walk(state.learner, state.first, run.key_greedy)
     barrier("body log written")  # every process reads it in the confirm stage
-    clock.phase("greedy_rollout")
+    clock.phase("greedy_rollout")  # the walk alone since issue 61 (its bodies' evaluation is in
+    # "confirm"); the name kept, as in docs/warp/run_timing.jsonl's rows
     return Evolved(state, step, rows, chunk_seconds, dispatch, greedy, ranked, draw)
 
 
