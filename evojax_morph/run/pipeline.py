@@ -51,7 +51,7 @@ class RunConfig:
     chunk: int = 5  # environment steps per jitted call
     checkpoint_every: int = 1  # chunks between checkpoints
     confirm: int = 4  # bodies of the highest mean evaluated again at the end; 0: none
-    confirm_controllers: int = 4  # fresh evaluations (controllers) per confirmed body
+    confirm_controllers: int = 4  # fresh evaluations per confirmed body (and greedy body with them)
 
 
 def agent_config(cfg: RunConfig, env: EvolutionEnv) -> Any:
