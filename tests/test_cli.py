@@ -341,25 +341,29 @@ LOWERED = "Finished jaxpr to MLIR module conversion "
 COMPILED = "Finished XLA compilation of "  # compiled, or loaded from the persistent cache
 
 
-def test_a_run_compiles_its_later_programs_ahead(tmp_path, caplog):
-    """The chunks (of 3 steps and of the last 1), the greedy rollout and the confirm stage's
-    fitness call are lowered and compiled on the warmup thread, while m0 is evaluated: the main
-    thread lowers and compiles none of them. (A table fitness: it has draws to confirm, and
-    compiles fast.)"""
+@pytest.mark.parametrize("confirm", [2, 0])
+def test_a_run_compiles_its_later_programs_ahead(tmp_path, caplog, confirm):
+    """The chunks (of 3 steps and of the last 1), the greedy walk and the confirm stage's
+    fitness call (which evaluates the greedy bodies too), or with --confirm 0 the greedy
+    bodies' own call, are lowered and compiled on the warmup thread, while m0 is evaluated:
+    the main thread lowers and compiles none of them. (A table fitness: it has draws to
+    confirm, and compiles fast.)"""
     args = ["--space", "bad_walker", "--fitness", "table", "--num-envs", "4", "--steps", "4",
-            "--chunk", "3", "--explore-steps", "4", "--learning-starts", "8", "--confirm", "2",
-            "--confirm-controllers", "2", "--out", str(tmp_path / "run")]
+            "--chunk", "3", "--explore-steps", "4", "--learning-starts", "8", "--confirm",
+            str(confirm), "--confirm-controllers", "2", "--out", str(tmp_path / "run")]
     jax.config.update("jax_log_compiles", True)  # in every thread (`jax.log_compiles` in this)
     try:
         with caplog.at_level(logging.WARNING, logger="jax"):
             assert cli.main(args) == 0
     finally:
         jax.config.update("jax_log_compiles", False)
-    later = ["jit(chunk)", "jit(run)", "jit(evaluate)"]  # run: the greedy rollout's program
+    # walk: the greedy walk's program; greedy_fitness: its bodies' call apart from confirm's
+    later = ["jit(chunk)", "jit(walk)", "jit(evaluate)", "jit(greedy_fitness)"]
+    ahead = [2, 1, 1, 0] if confirm else [2, 1, 0, 1]
     for done in (LOWERED, COMPILED):
         by_thread = _by_thread(caplog.records, done)
-        assert [by_thread[True, name] for name in later] == [2, 1, 1], done
-        assert [by_thread[False, name] for name in later] == [0, 0, 0], done
+        assert [by_thread[True, name] for name in later] == ahead, done
+        assert [by_thread[False, name] for name in later] == [0, 0, 0, 0], done
         assert by_thread[False, "jit(init)"] == 1, done  # m0's, on the main thread
 
 

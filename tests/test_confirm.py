@@ -103,6 +103,57 @@ def test_resume_of_a_finished_run_does_not_confirm_again(planted, tmp_path, monk
         confirming.confirm_record(again, None, cfg, 4)
 
 
+def test_the_greedy_trajectory_joins_the_confirm_call(walker, tmp_path, monkeypatch):
+    """Where the confirm stage confirms, the greedy trajectory's bodies join its one fitness
+    call (issue 61): one call of (confirm + horizon + 1) x C evaluations, the greedy bodies
+    last, none apart; each greedy body's fitness is the mean of its C values there; the
+    confirmed bodies (confirmed.json, the best body) are the body log's alone."""
+    from evojax_morph.run import confirm as confirm_module
+    from evojax_morph.run import driver
+
+    space = walker[0]
+    calls, evaluate = [], confirm_module.evaluate
+
+    def counted(*args, **kwargs):
+        res = evaluate(*args, **kwargs)
+        calls.append((jax.device_get(args[1]), np.asarray(res.fitness)))
+        return res
+
+    def apart(p):
+        return lambda *_: pytest.fail("the greedy bodies evaluated in a call of their own")
+
+    monkeypatch.setattr(confirm_module, "evaluate", counted)
+    monkeypatch.setattr(driver, "make_greedy_evaluation", apart)
+    n, h, c = 2, 2, 3
+    out = tmp_path / "run"
+    assert cli.main(["--space", "bad_walker", "--fitness", "table", "--num-envs", "4",
+                     "--steps", "4", "--chunk", "2", "--explore-steps", "4",
+                     "--learning-starts", "8", "--horizon", str(h), "--confirm", str(n),
+                     "--confirm-controllers", str(c), "--out", str(out)]) == 0
+    assert len(calls) == 1
+    morphs, values = calls[0]
+    assert values.shape == ((n + h + 1) * c,)
+    called = [space.canonical(jax.tree.map(lambda x, i=i: x[i * c], morphs))
+              for i in range(n + h + 1)]
+    per_body = values.reshape(n + h + 1, c).astype(np.float64)
+
+    summary = json.loads((out / "summary.json").read_text())
+    greedy = summary["greedy_trajectory"]
+    assert [space.canonical(em.Morphology.from_dict(g["morphology"])) for g in greedy] == \
+        called[n:]
+    assert [g["fitness"] for g in greedy] == per_body[n:].mean(1).tolist()
+    assert [g["controllers"] for g in greedy] == [c] * (h + 1)
+
+    logged = [b["body"] for b in em.best_bodies(out / "bodies.sqlite", n)]
+    record = json.loads((out / "confirmed.json").read_text())
+    assert sorted(e["body"] for e in record["confirmed"]) == sorted(logged) == sorted(called[:n])
+    for e in record["confirmed"]:
+        assert e["values"] == per_body[called[:n].index(e["body"])].tolist()
+    means = [e["mean"] for e in record["confirmed"]]
+    assert means == sorted(means, reverse=True)
+    assert summary["best_body"] == record["confirmed"][0]["body"]
+
+
 def test_confirm_interval_and_values(walker, tmp_path):
     """Every value a draw of the body's own row (row r's values are 1000 r + s), the mean and
     the Student-t interval of those values, best first; the values are em.evaluate's of the

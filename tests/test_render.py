@@ -148,7 +148,7 @@ def test_confirmed_best_keeps_its_fresh_controllers(run_dir, tmp_path):
     log.close()
     cfg = RunConfig(fitness="ppo", train_steps=320, controllers=2, confirm=2,
                     confirm_controllers=2)
-    record, top = confirming.confirm_record(tmp_path, p, cfg, 0)
+    record, top, _ = confirming.confirm_record(tmp_path, p, cfg, 0)
     confirmed = record["confirmed"]
     assert [c["log_mean"] for c in confirmed] in ([2.0, 1.0], [1.0, 2.0])
     assert top.body == confirmed[0]["body"] and top.mean == confirmed[0]["mean"]

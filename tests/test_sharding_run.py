@@ -16,15 +16,18 @@ import jax
 from evojax_morph.run import cli
 
 assert jax.device_count() == 4
-# the greedy rollout compiles for one device (split, one body a call, it hung on 2 GPUs)
-from evojax_morph.run.pipeline import RunConfig, build, make_greedy_rollout
+# the greedy walk, and its bodies' call apart from the confirm stage's, compile for one device
+# (the rollout split, one body a call, hung on 2 GPUs)
+from evojax_morph.run.pipeline import RunConfig, build, make_greedy_evaluation, make_greedy_walk
 from evojax_morph.sharding import batch_mesh, replicated
 p = build(RunConfig(space="bad_walker", fitness="predefined", num_envs=4, horizon=2))
 everywhere = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=replicated(batch_mesh()))
 state = jax.tree.map(everywhere, jax.eval_shape(p.agent.init, jax.random.PRNGKey(0)))  # as run's
-lowered = make_greedy_rollout(p).lower(state.learner, state.first, jax.random.PRNGKey(1))
-placed = jax.tree.leaves(lowered.compile().input_shardings)
-assert {d for s in placed for d in s.device_set} == {jax.local_devices()[0]}, placed
+key = jax.random.PRNGKey(1)
+for lowered in (make_greedy_walk(p).lower(state.learner, state.first, key),
+                make_greedy_evaluation(p).lower(key)):
+    placed = jax.tree.leaves(lowered.compile().input_shardings)
+    assert {d for s in placed for d in s.device_set} == {jax.local_devices()[0]}, placed
 assert cli.main(sys.argv[1:]) == 0  # a run saved on 4 devices, resumed by the caller on 1
 """
 

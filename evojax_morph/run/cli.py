@@ -299,7 +299,8 @@ def add_confirm_flags(group, defaults: RunConfig) -> None:
         "--confirm-controllers",
         type=int,
         default=defaults.confirm_controllers,
-        help="fresh evaluations per confirmed body (each one controller trained from scratch; "
+        help="fresh evaluations per confirmed body and per body of the greedy trajectory, "
+        "which joins the confirm call (each one controller trained from scratch; "
         "table: one draw), at least 2: the 95%% interval of its mean is a Student-t interval "
         "over them (default: 32 on a GPU, 4 on a CPU)",
     )

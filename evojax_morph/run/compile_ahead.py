@@ -1,7 +1,8 @@
 """A run's later programs lowered and compiled on a second thread while its first one runs.
 
 After m0's evaluation a run calls four more compiled programs: a chunk of steps, the greedy
-rollout, the confirm stage's fitness call and best.gif's replay. Before its first call each one
+walk, the confirm stage's fitness call (with the greedy trajectory's bodies; where it confirms
+nothing, they get a call of their own) and best.gif's replay. Before its first call each one
 costs the host seconds: tracing and lowering it, then compiling it (or, with a warm persistent
 cache, loading it). Meanwhile m0's evaluation, a step's worth of work, keeps the device busy and
 the host mostly idle. The run queues the later programs before m0's evaluation, for the shapes
@@ -26,9 +27,12 @@ docs/benchmarks.md, "Compiling on the second thread breaks Warp's graph capture"
 
 With Warp on several GPUs the run turns the warmup off (`driver.execute`): runs on 2 H100s
 stopped in the greedy rollout after their steps, 4 of 4 with the warmup on. It was not the
-only cause: with it off 1 of 2 hung too, the rollout split across the GPUs, which now runs on
-one device (`pipeline.make_greedy_rollout`; a run so finished). Whether the warmup could come
-back there was not tried. docs/benchmarks.md, "The Warp fitness across GPUs".
+only cause: with it off 1 of 2 hung too, the rollout (then a scan of one-body fitness calls)
+split across the GPUs; on one device a run so finished. Its walk still runs on one device
+(`pipeline.make_greedy_walk`); its bodies are now evaluated in the confirm stage's batched call,
+split as that call was in the runs that finished (with them in it: not yet run on 2 GPUs).
+Whether the warmup could come back there was not tried. docs/benchmarks.md, "The Warp fitness
+across GPUs".
 """
 
 from __future__ import annotations

@@ -124,5 +124,9 @@ def confirm(
             distance=distance[i],
             upright=upright[i],
         ))
-    # stable: ties keep the order of `morphs`
-    return sorted(found, key=lambda c: -c.mean) if ranked else found
+    return rank(found) if ranked else found
+
+
+def rank(found: list[Confirmed]) -> list[Confirmed]:
+    """`found` sorted by mean, best first; stable: equal means keep their order."""
+    return sorted(found, key=lambda c: -c.mean)

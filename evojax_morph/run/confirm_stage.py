@@ -1,5 +1,6 @@
 """A run's confirm stage: the bodies of the highest mean in its body log confirmed (`confirm`),
-and the body the run reports as its best chosen (`reported_best`).
+the greedy trajectory's bodies evaluated (in the same fitness call where it confirms now), and
+the body the run reports as its best chosen (`reported_best`).
 
 It writes and reads its own files, confirmed.json and the controllers of the best body and of
 the greedy trajectory (`save_controllers`), and hands the report stage a `Best`.
@@ -18,7 +19,7 @@ from evojax_morph.fitnesses import FitnessConfig, get_fitness
 from evojax_morph.morphology import Morphology
 from evojax_morph.run import bodylog, checkpoints, saved_controllers
 from evojax_morph.run.compile_ahead import Job
-from evojax_morph.run.confirm import Confirmed, confirm, lower_confirm
+from evojax_morph.run.confirm import Confirmed, confirm, lower_confirm, rank
 from evojax_morph.run.pipeline import Greedy, Pipeline, RunConfig
 from evojax_morph.sharding import to_host
 
@@ -33,6 +34,7 @@ class Best(NamedTuple):
     record: dict  # confirmed.json's
     top: Confirmed | None  # the confirmed best, when evaluated now
     saved: list[str]  # the controllers saved
+    greedy: Greedy | None  # the greedy trajectory, evaluated; None for the baselines
 
 
 def confirm_skipped(cfg: RunConfig) -> str | None:
@@ -53,73 +55,113 @@ def best_controllers(cfg: RunConfig, p: Pipeline) -> FitnessConfig:
         cfg.confirm_controllers)
 
 
-def confirm_jobs(run) -> list[Job]:
-    """The confirm stage's one fitness call, where it makes one, for compiling ahead."""
+def kept_record(out: Path, cfg: RunConfig, step: int) -> dict | None:
+    """confirmed.json's record where the run was confirmed at `step` with these settings (a
+    --resume of a finished run: not done again), else None. Raises `Damaged` where the file
+    does not read."""
+    done = out / "confirmed.json"
+    if not done.exists():
+        return None
+    before = checkpoints.read_sealed(done)
+    now = {"env_steps": step, "bodies": cfg.confirm, "controllers": cfg.confirm_controllers}
+    return before if all(before.get(k) == v for k, v in now.items()) else None
+
+
+def confirms_now(run, step: int) -> bool:
+    """Whether the confirm stage of `run` (`driver.Run`) ending at `step` evaluates bodies:
+    not skipped (`confirm_skipped`), not kept (`kept_record`). Then the greedy trajectory's
+    bodies join its fitness call; else they have one of their own
+    (`pipeline.make_greedy_evaluation`)."""
+    return not confirm_skipped(run.cfg) and kept_record(run.out, run.cfg, step) is None
+
+
+def greedy_bodies(p: Pipeline) -> int:
+    """The bodies of the greedy trajectory, m0 first; 0 for a baseline (no policy to roll out)."""
+    return 0 if p.agent.scores is None else p.greedy_env.horizon + 1
+
+
+def confirm_jobs(run, step: int) -> list[Job]:
+    """The confirm stage's one fitness call at `step`, where it makes one, for compiling ahead:
+    cfg.confirm bodies and the greedy trajectory's, C times each."""
     cfg, p = run.cfg, run.p
-    return [] if confirm_skipped(cfg) else [Job("confirm", lambda: lower_confirm(
-        p.space, cfg.confirm, p.fitness, cfg.confirm_controllers))]
+    bodies = cfg.confirm + greedy_bodies(p)
+    return [Job("confirm", lambda: lower_confirm(
+        p.space, bodies, p.fitness, cfg.confirm_controllers))] if confirms_now(run, step) else []
 
 
 def confirm_stage(run, evolved, ahead, clock) -> Best:
     """The confirm stage, from the earlier stages' results `run` (`driver.Run`) and `evolved`
-    (`driver.Evolved`): the bodies of the log confirmed (`confirm_record`), the run's best
-    chosen (`reported_best`), its and the greedy trajectory's controllers saved, and
-    confirmed.json written (if confirmed now, lead process); every process calls it."""
-    p, cfg, state = run.p, run.cfg, evolved.state
+    (`driver.Evolved`): the bodies of the log confirmed with the walked greedy trajectory's in
+    one fitness call (`confirm_record`), or, where it confirms nothing now, the greedy
+    trajectory evaluated alone (`pipeline.make_greedy_evaluation`); the run's best chosen
+    (`reported_best`), its and the greedy trajectory's controllers saved, and confirmed.json
+    written (if confirmed now, lead process); every process calls it."""
+    p, cfg, state, greedy = run.p, run.cfg, evolved.state, evolved.greedy
     draw = to_host((state.best_morph, state.best_fitness, state.best_params))
     ahead.wait("confirm")
-    record, top = confirm_record(run.out, p, cfg, evolved.step, run.log)
+    record, top, joined = confirm_record(run.out, p, cfg, evolved.step, run.log,
+                                         None if greedy is None else greedy.morphs)
+    if joined is not None:
+        greedy = greedy_confirmed(greedy, joined)
+    elif greedy is not None:
+        greedy = run.greedy_evaluation(greedy, run.key_greedy)
     clock.phase("confirm")
     ahead.close()  # best.gif's replay and GL
     best, best_fitness, best_params, best_cfg = reported_best(
         run.out, p, record, top, (draw[0], float(draw[1]), draw[2]))
     saved = save_controllers(run.out, p, cfg.seed, best, best_fitness, best_params,
-                             evolved.greedy, best_cfg)
+                             greedy, best_cfg)
     clock.phase("controllers")
     if top is not None and run.lead:  # written last: the stage is done, a --resume keeps it
         record["best_morphology"] = best.to_dict()
         (run.out / "confirmed.json").write_text(json.dumps(checkpoints.seal(record), indent=1))
-    return Best(best, best_fitness, record, top, saved)
+    return Best(best, best_fitness, record, top, saved, greedy)
 
 
-def confirm_record(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print):
-    """The bodies of a run's log confirmed; every process calls it, after the body log is
-    written.
+def confirm_record(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print,
+                   greedy: list | None = None):
+    """The bodies of a run's log confirmed, the greedy trajectory's `greedy` in the same call;
+    every process calls it, after the body log is written.
 
     The `cfg.confirm` distinct bodies of the highest mean in the body log (`bodylog.
-    best_bodies`: ties to the body evaluated more often, then to the one seen first) are each
-    evaluated `cfg.confirm_controllers` times from scratch, in one fitness call (`confirm`):
-    fresh controllers, no inheritance, keys from `fold_in(PRNGKey(seed), CONFIRM_SALT)`, which
-    no other part of the run uses. Skipped, with a note saying why (`confirm_skipped`); not done
-    again when confirmed.json says it was done at this step with these settings (a --resume of
-    a finished run).
+    best_bodies`: ties to the body evaluated more often, then to the one seen first), then the
+    bodies `greedy`, are each evaluated `cfg.confirm_controllers` times from scratch, in one
+    fitness call (`confirm`): fresh controllers, no inheritance, keys from
+    `fold_in(PRNGKey(seed), CONFIRM_SALT)`, which no other part of the run uses. The greedy
+    bodies only ride along (one call's latency instead of two, issue 61): they enter neither
+    the record nor the choice of the best. Skipped, with a note saying why (`confirm_skipped`);
+    not done again when confirmed.json says it was done at this step with these settings
+    (`kept_record`: a --resume of a finished run).
 
     Returns:
-      (record, top): record is what confirmed.json keeps (env_steps, bodies, controllers,
-      "confirmed": summary entries best first, "confirm_note"); top is the best `Confirmed`
-      when it was evaluated now, else None.
+      (record, top, joined): record is what confirmed.json keeps (env_steps, bodies,
+      controllers, "confirmed": summary entries best first, "confirm_note"); top is the best
+      `Confirmed` when it was evaluated now, else None; joined the `Confirmed` of each body of
+      `greedy`, in its order, when evaluated now, else None.
     """
     n, c = cfg.confirm, cfg.confirm_controllers
     record = {"env_steps": step, "bodies": n, "controllers": c, "confirmed": []}
-    done = out / "confirmed.json"
-    if done.exists():
-        before = checkpoints.read_sealed(done)
-        if all(before.get(k) == record[k] for k in ("env_steps", "bodies", "controllers")):
-            log("confirm: done when the run finished, kept (confirmed.json)")
-            return before, None
+    before = kept_record(out, cfg, step)
+    if before is not None:
+        log("confirm: done when the run finished, kept (confirmed.json)")
+        return before, None, None
     record["confirm_note"] = confirm_skipped(cfg)
     if record["confirm_note"]:
         if n:  # --confirm 0 said so itself
             log(f"confirm: {record['confirm_note']}")
-        return record, None
+        return record, None, None
     path = out / "bodies.sqlite"
     ranked = bodylog.best_bodies(path, n)
     shapes = bodylog.shapes(path, p.space, [b["body"] for b in ranked])
     ranked = [b for b in ranked if b["body"] in shapes]  # bodies of a run begun before shapes
-    log(f"confirm: the {len(ranked)} bodies of the highest mean, {c} fresh evaluations each...")
+    also = "" if not greedy else f", with the greedy trajectory's {len(greedy)} bodies"
+    log(f"confirm: the {len(ranked)} bodies of the highest mean{also}, {c} fresh evaluations "
+        "each...")
     key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), CONFIRM_SALT)
-    morphs = jax.tree.map(lambda *x: np.stack(x), *[shapes[b["body"]] for b in ranked])
-    found = confirm(p.space, morphs, key, p.fitness, c)
+    bodies = [shapes[b["body"]] for b in ranked] + list(greedy or [])
+    morphs = jax.tree.map(lambda *x: np.stack(x), *bodies)
+    every = confirm(p.space, morphs, key, p.fitness, c, ranked=False)
+    found, joined = rank(every[:len(ranked)]), every[len(ranked):]
     in_log = {b["body"]: b for b in ranked}
     record["confirmed"] = [confirmed_entry(f, in_log[f.body]) for f in found]
     record["confirm_note"] = (
@@ -127,7 +169,24 @@ def confirm_record(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print)
         "times from scratch (fresh keys and controllers, no inheritance) in one fitness call; "
         f"mean and 95% Student-t interval over the {c}"
     )
-    return record, found[0]
+    return record, found[0], None if greedy is None else joined
+
+
+def greedy_confirmed(greedy: Greedy, joined: list[Confirmed]) -> Greedy:
+    """The walked `greedy` with its bodies' results `joined` from the confirm stage's call: each
+    body's fitness the mean over its C fresh controllers, its controllers best first."""
+    return greedy._replace(fitness=[f.mean for f in joined],
+                           params=[best_first(f) for f in joined],
+                           controllers=len(joined[0].values), confirmed=True)
+
+
+def best_first(found: Confirmed):
+    """The C controllers of `found`, best first (best.gif replays the 0th; ties in their
+    order); None where the fitness trains none."""
+    if found.params is None:
+        return None
+    order = np.argsort(-found.values, kind="stable")
+    return jax.tree.map(lambda x: x[order], found.params)
 
 
 def confirmed_entry(found: Confirmed, logged: dict) -> dict:
@@ -171,11 +230,8 @@ def reported_best(out: Path, p: Pipeline, record: dict, top: Confirmed | None, d
     (morph, fitness, controllers).
     """
     if top is not None:
-        params, cfg = None, p.fitness
-        if top.params is not None:
-            order = np.argsort(-top.values, kind="stable")
-            params = jax.tree.map(lambda x: x[order], top.params)
-            cfg = p.fitness.with_controllers(len(top.values))
+        params = best_first(top)
+        cfg = p.fitness if params is None else p.fitness.with_controllers(len(top.values))
         return top.morph, top.mean, params, cfg
     if record["confirmed"]:
         morph = Morphology.from_dict(record["best_morphology"])
@@ -188,15 +244,18 @@ def reported_best(out: Path, p: Pipeline, record: dict, top: Confirmed | None, d
 
 def save_controllers(out: Path, p: Pipeline, seed: int, best, best_fitness: float, best_params,
                      greedy: Greedy | None, best_cfg=None) -> list[str]:
-    """controllers/best and controllers/stepT for the greedy trajectory's bodies, for a fitness
-    that trains controllers; every process calls it. best_cfg: the fitness config the best
-    body's controllers were trained under (default the run's; the confirm stage's has C
-    controllers). Returns the names saved."""
+    """controllers/best and controllers/stepT for the evaluated greedy trajectory's bodies, for
+    a fitness that trains controllers; every process calls it. best_cfg: the fitness config the
+    best body's controllers were trained under (default the run's; the confirm stage's has C
+    controllers); the greedy bodies' has `greedy.controllers` (None: the run's). Returns the
+    names saved."""
     if not saved_controllers.has_controllers(p.fitness):
         return []
     bodies = [("best", best, best_params, best_fitness, best_cfg or p.fitness)]
     if greedy is not None:
-        bodies += [(f"step{t}", m, params, f, p.fitness) for t, (m, params, f)
+        k = greedy.controllers
+        greedy_cfg = p.fitness if k is None else p.fitness.with_controllers(k)
+        bodies += [(f"step{t}", m, params, f, greedy_cfg) for t, (m, params, f)
                    in enumerate(zip(greedy.morphs, greedy.params, greedy.fitness))]
     for name, morph, params, fitness, fit_cfg in bodies:
         label = name if name == "best" else f"step {name[4:]}"

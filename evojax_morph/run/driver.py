@@ -3,9 +3,10 @@
 `execute(cfg, out, resume)` runs `pipeline.build(cfg)` chunk by chunk and writes the run
 directory (`evojax_morph.run` lists its files), as stages each handing its results to the next:
 `_build`, `_warm_up` (m0 or a checkpoint, `checkpoints`), `_evolve` (the steps, then the greedy
-rollout), `confirm_stage` (the bodies of the highest mean in the body log evaluated
-again from scratch; its best is the run's best body) and `report.report_stage`. Each stage
-offers the programs it will call, which compile ahead (`compile_ahead.Warmup.collect`).
+walk from m0), `confirm_stage` (the bodies of the highest mean in the body log evaluated
+again from scratch, the greedy trajectory's in the same call; its best is the run's best body)
+and `report.report_stage`. Each stage offers the programs it will call, which compile ahead
+(`compile_ahead.Warmup.collect`).
 """
 
 from __future__ import annotations
@@ -25,8 +26,20 @@ import numpy as np
 from evojax_morph.physics.engines import registered
 from evojax_morph.run import bodylog, checkpoints, saved_controllers
 from evojax_morph.run.compile_ahead import Job, Warmup
-from evojax_morph.run.confirm_stage import best_controllers, confirm_jobs, confirm_stage
-from evojax_morph.run.pipeline import Greedy, Pipeline, RunConfig, build, make_greedy_rollout
+from evojax_morph.run.confirm_stage import (
+    best_controllers,
+    confirm_jobs,
+    confirm_stage,
+    confirms_now,
+)
+from evojax_morph.run.pipeline import (
+    Greedy,
+    Pipeline,
+    RunConfig,
+    build,
+    make_greedy_evaluation,
+    make_greedy_walk,
+)
 from evojax_morph.run.report import report_jobs, report_stage
 from evojax_morph.sharding import barrier, batch_mesh, replicated, to_host
 
@@ -80,21 +93,22 @@ class Run(NamedTuple):
     log: Callable  # print on the lead process, else nothing
     manager: object  # the Orbax CheckpointManager of out/checkpoints
     bodies: bodylog.BodyLog | None  # the body log (lead process only)
-    greedy_rollout: Callable | None  # None for the baselines: no policy to roll out
+    greedy_walk: Callable | None  # None for the baselines: no policy to roll out
+    greedy_evaluation: Callable | None  # its bodies evaluated, where the confirm stage does not
     key_init: jax.Array
     key_greedy: jax.Array
 
 
 class Evolved(NamedTuple):
     """What the evolve stage hands down: the agent state after `step` steps, its record, the
-    trained agent's greedy rollout, and the best of its body log."""
+    trained agent's greedy walk (its bodies not yet evaluated), and the best of its body log."""
 
     state: object
     step: int
     rows: list[dict]  # metrics.csv's
     chunk_seconds: list[tuple[int, float]]  # (steps, wall clock) of each chunk; the first compiles
     dispatch: float | None  # seconds until the first chunk call returns (`timing`)
-    greedy: Greedy | None  # None for the baselines: no policy to roll out
+    greedy: Greedy | None  # walked, no fitness yet; None for the baselines: no policy
     best_bodies: list[dict] | None  # the body log's 10 of the highest mean (lead process)
     best_draw: dict | None  # the body log's highest single draw (lead process)
 
@@ -104,7 +118,8 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
     clock = Clock()
     run, step, state, abstract = _build(cfg, out, resume, gif)
     # The stages' jobs, queued before m0's evaluation, begun after its lowering.
-    ahead.collect(_evolve_jobs(run, abstract, step or 0) + confirm_jobs(run)
+    end = max(step or 0, cfg.steps)  # the step the run ends at
+    ahead.collect(_evolve_jobs(run, abstract, step or 0) + confirm_jobs(run, end)
                   + report_jobs(run, best_controllers(cfg, run.p)))
     step, state, rows = _warm_up(run, step, state, ahead)
     clock.phase("build_and_m0")
@@ -147,8 +162,10 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
             write_config()
     _, manager = checkpoints.checkpoint_manager(out)
     bodies = bodylog.BodyLog(out / "bodies.sqlite", p.space) if lead else None
-    greedy_rollout = None if p.agent.scores is None else make_greedy_rollout(p)
-    run = Run(cfg, out, gif, p, lead, log, manager, bodies, greedy_rollout, key_init, key_greedy)
+    walk, evaluation = (None, None) if p.agent.scores is None else (
+        make_greedy_walk(p), make_greedy_evaluation(p))
+    run = Run(cfg, out, gif, p, lead, log, manager, bodies, walk, evaluation, key_init,
+              key_greedy)
     return run, step, state, abstract
 
 
@@ -179,7 +196,8 @@ def _warm_up(run: Run, step, state, ahead: Warmup):
 def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: Clock) -> Evolved:
     """The steps from `step` to cfg.steps, chunk by chunk: metrics.csv, the body log and
     TensorBoard after each chunk, a checkpoint every cfg.checkpoint_every chunks and at the end;
-    then the body log's best, and the trained agent's greedy rollout (an agent with a policy)."""
+    then the body log's best, and the trained agent's greedy walk (an agent with a policy; the
+    confirm stage evaluates its bodies)."""
     from tensorboardX import SummaryWriter
     from tqdm import tqdm
 
@@ -221,11 +239,12 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: 
         ranked, draw = bodylog.best_bodies(path, 10), bodylog.best_draw(path)
     clock.phase("steps")
     greedy = None
-    if run.greedy_rollout is not None:
+    if run.greedy_walk is not None:
         ahead.wait("greedy")
-        greedy = run.greedy_rollout(state.learner, state.first, run.key_greedy)
+        greedy = run.greedy_walk(state.learner, state.first, run.key_greedy)
     barrier("body log written")  # every process reads it in the confirm stage
-    clock.phase("greedy_rollout")
+    clock.phase("greedy_rollout")  # the walk alone since issue 61 (its bodies' evaluation is in
+    # "confirm"); the name kept, as in docs/warp/run_timing.jsonl's rows
     return Evolved(state, step, rows, chunk_seconds, dispatch, greedy, ranked, draw)
 
 
@@ -257,12 +276,15 @@ def _record_chunk(run: Run, step: int, n: int, metrics: dict, writer) -> list[di
 
 
 def _evolve_jobs(run: Run, state, start: int) -> list[Job]:
-    """The chunks of the sizes the steps from `start` take, then the greedy rollout."""
+    """The chunks of the sizes the steps from `start` take, then the greedy walk, and its
+    bodies' evaluation where the confirm stage's call does not take them (`confirms_now`)."""
     cfg, p = run.cfg, run.p
     sizes = [min(cfg.chunk, cfg.steps - s) for s in range(start, cfg.steps, cfg.chunk)]
     jobs = [Job(f"chunk {n}", lambda n=n: p.agent.chunk.lower(state, n))
             for n in dict.fromkeys(sizes)]
-    if run.greedy_rollout is not None:
-        jobs.append(Job("greedy", lambda: run.greedy_rollout.lower(state.learner, state.first,
-                                                                   run.key_greedy)))
+    if run.greedy_walk is not None:
+        apart = not confirms_now(run, max(start, cfg.steps))
+        jobs.append(Job("greedy", lambda: [
+            run.greedy_walk.lower(state.learner, state.first, run.key_greedy),
+            *([run.greedy_evaluation.lower(run.key_greedy)] if apart else [])]))
     return jobs

@@ -13,6 +13,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from evojax_morph import agents
 from evojax_morph.agents import Agent, RunOptions
@@ -50,7 +51,7 @@ class RunConfig:
     chunk: int = 5  # environment steps per jitted call
     checkpoint_every: int = 1  # chunks between checkpoints
     confirm: int = 4  # bodies of the highest mean evaluated again at the end; 0: none
-    confirm_controllers: int = 4  # fresh evaluations (controllers) per confirmed body
+    confirm_controllers: int = 4  # fresh evaluations per confirmed body (and greedy body with them)
 
 
 def agent_config(cfg: RunConfig, env: EvolutionEnv) -> Any:
@@ -105,12 +106,18 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
 
 
 class Greedy(NamedTuple):
-    """A greedy rollout from m0: horizon + 1 bodies, m0 first."""
+    """A greedy rollout from m0: horizon + 1 bodies, m0 first. The walk (`make_greedy_walk`)
+    gives the bodies and actions; their evaluation (`make_greedy_evaluation`, or the confirm
+    stage's call, `confirm_stage`) their fitness and controllers."""
 
     morphs: list  # the bodies (`Morphology`, on the host)
-    fitness: list[float]  # their fitness, each with a fresh controller (`make_greedy_rollout`)
+    fitness: list[float] | None  # each body's mean over its fresh controllers; None: not evaluated
     actions: list[str]  # the horizon mutations, named (`action_name`)
-    params: list  # the controller each body was evaluated with (trained, for the PPO fitness)
+    params: list | None  # each body's controllers (trained, for the PPO fitness); where
+    # confirmed, best first
+    controllers: int | None = None  # the fresh controllers a body's fitness is the mean of;
+    # None: the run's K
+    confirmed: bool = False  # evaluated in the confirm stage's call, C controllers a body
 
 
 NO_OP = " (no-op)"
@@ -124,21 +131,19 @@ def action_name(space, action: int, before, after) -> str:
     return f"node {node}: {space.mutation_names[mutation]}" + (NO_OP if same else "")
 
 
-def make_greedy_rollout(p: Pipeline):
-    """`rollout(learner, first, key) -> Greedy`: from m0 (env 0 of `first`, the evaluated
-    start), the agent's greedy mutations, then every body of the trajectory, m0 too, evaluated
-    with a fresh controller in ONE fitness call. The mutations need no fitness (an observation
-    is the body and the progress), so the horizon's bodies come first and their evaluations
-    run side by side, not one body a call (one-body calls took 32 s for Bad Walker's 5 at
-    50,000 PPO steps and 117 s for the Constructor's 8 at 100,000 on an H100, issue 61).
-    A fresh controller (trained from scratch, as the confirm stage's) is the measurement
-    the run's own steps are not: there a child inherits its parent's. Compiled once, reused
-    across calls, on the first device of this process (`build`)."""
-    space, env1, scores, init_fn = p.space, p.greedy_env, p.agent.scores, p.init_fn
+def make_greedy_walk(p: Pipeline):
+    """`walk(learner, first, key) -> Greedy`: from m0 (env 0 of `first`, the evaluated start),
+    the agent's greedy mutations, with no fitness: an observation is the body and the progress,
+    so the horizon's bodies come first and are evaluated side by side afterwards, in one fitness
+    call (`make_greedy_evaluation`, or the confirm stage's), not one body a call (one-body calls
+    took 32 s for Bad Walker's 5 at 50,000 PPO steps and 117 s for the Constructor's 8 at
+    100,000 on an H100, issue 61). The `Greedy` has the bodies, m0 first, and the actions named;
+    no fitness yet. Compiled once, reused across calls, on the first device of this process."""
+    space, env1, scores = p.space, p.greedy_env, p.agent.scores
     device = jax.local_devices()[0]
 
     @jax.jit
-    def run(learner, evo, key):
+    def walk(learner, evo, key):
         def body(evo, _):
             obs = env1.observe(evo)
             action = masked_argmax(scores(learner, obs), obs.mask)
@@ -147,11 +152,7 @@ def make_greedy_rollout(p: Pipeline):
 
         _, (morphs, actions) = jax.lax.scan(body, evo, length=env1.horizon)
         bodies = jax.tree.map(lambda m0, ms: jnp.concatenate([m0, ms[:, 0]]), evo.morph, morphs)
-        key_init, key_fit = jax.random.split(key)
-        n = env1.horizon + 1
-        params = jax.vmap(init_fn)(jax.random.split(key_init, n))
-        out = env1.fitness_fn(jax.random.split(key_fit, n), bodies, params)
-        return bodies, out.params, out.fitness, actions
+        return bodies, actions
 
     env0 = lambda first: jax.tree.map(lambda x: x[:1], first)  # noqa: E731
 
@@ -160,19 +161,67 @@ def make_greedy_rollout(p: Pipeline):
         return jax.device_put(to_host((learner, env0(first), key)), device)
 
     def rollout(learner, first, key) -> Greedy:
-        learner, first, key = on_device(learner, first, key)
-        morphs, params, fitness, actions = to_host(run(learner, first, key))
-        at = lambda tree, i: jax.tree.map(lambda x: x[i], tree)  # noqa: E731
-        bodies = [at(morphs, i) for i in range(env1.horizon + 1)]
+        morphs, actions = jax.device_get(walk(*on_device(learner, first, key)))
+        bodies = [_at(morphs, i) for i in range(env1.horizon + 1)]
         names = [action_name(space, a, before, after)
                  for a, before, after in zip(actions, bodies, bodies[1:])]
-        return Greedy(morphs=bodies, fitness=[float(f) for f in fitness], actions=names,
-                      params=[at(params, i) for i in range(env1.horizon + 1)])
+        return Greedy(morphs=bodies, fitness=None, actions=names, params=None)
 
     def lower(learner, first, key):  # the abstract arguments (`driver._evolve_jobs`)
-        place = lambda x: jax.ShapeDtypeStruct(  # noqa: E731
-            x.shape, x.dtype, sharding=jax.sharding.SingleDeviceSharding(device))
-        return run.lower(*jax.tree.map(place, (learner, jax.eval_shape(env0, first), key)))
+        return walk.lower(*jax.tree.map(_on(device), (learner, jax.eval_shape(env0, first),
+                                                      key)))
 
     rollout.lower = lower  # its program, for compiling ahead (`compile_ahead`)
     return rollout
+
+
+def make_greedy_evaluation(p: Pipeline):
+    """`evaluate(greedy, key) -> Greedy`: the walked bodies of `greedy` (`make_greedy_walk`)
+    evaluated under the run's fitness with fresh controllers, in ONE fitness call on the first
+    device of this process (`build`). A fresh controller (trained from scratch, as the confirm
+    stage's) is the measurement the run's own steps are not: there a child inherits its
+    parent's. Where the confirm stage evaluates, these bodies join its call instead
+    (`confirm_stage.confirm_record`) and this is not called."""
+    env1, init_fn, k = p.greedy_env, p.init_fn, p.fitness.ppo.controllers
+    n = env1.horizon + 1
+    device = jax.local_devices()[0]
+
+    @jax.jit
+    def greedy_fitness(bodies, key):
+        key_init, key_fit = jax.random.split(key)
+        params = jax.vmap(init_fn)(jax.random.split(key_init, n))
+        out = env1.fitness_fn(jax.random.split(key_fit, n), bodies, params)
+        return out.params, out.fitness
+
+    def evaluate(greedy: Greedy, key) -> Greedy:
+        bodies = jax.tree.map(lambda *x: np.stack(x), *greedy.morphs)
+        params, fitness = jax.device_get(greedy_fitness(*jax.device_put((bodies, key), device)))
+        return greedy._replace(fitness=[float(f) for f in fitness],
+                               params=[_at(params, i) for i in range(n)], controllers=k)
+
+    def lower(key):  # the abstract key (`driver._evolve_jobs`)
+        bodies = jax.eval_shape(lambda: jax.tree.map(
+            lambda x: jnp.repeat(jnp.asarray(x)[None], n, 0), p.space.initial()))
+        return greedy_fitness.lower(*jax.tree.map(_on(device), (bodies, key)))
+
+    evaluate.lower = lower  # its program, for compiling ahead (`compile_ahead`)
+    return evaluate
+
+
+def make_greedy_rollout(p: Pipeline):
+    """`rollout(learner, first, key) -> Greedy`: the greedy walk from m0 (`make_greedy_walk`),
+    then its horizon + 1 bodies evaluated with fresh controllers in one fitness call
+    (`make_greedy_evaluation`), both with `key`. A run does the two apart (`driver`)."""
+    walk, evaluate = make_greedy_walk(p), make_greedy_evaluation(p)
+    return lambda learner, first, key: evaluate(walk(learner, first, key), key)
+
+
+def _at(tree, i: int):
+    """Entry `i` of every array of `tree`."""
+    return jax.tree.map(lambda x: x[i], tree)
+
+
+def _on(device):
+    """An array's shape and dtype, placed on `device`: an abstract argument for lowering."""
+    return lambda x: jax.ShapeDtypeStruct(
+        x.shape, x.dtype, sharding=jax.sharding.SingleDeviceSharding(device))

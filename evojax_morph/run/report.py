@@ -20,7 +20,8 @@ def timing(total: float, chunks: list[tuple[int, float]]) -> dict:
     """timing.json: this call's wall clock (a resumed run's since it resumed), split into its
     steps and the rest (building, compiling, m0, the confirm stage, the end phase), from
     `driver.execute`'s start (imports excluded); it adds the seconds of its phases (building and
-    m0's evaluation, the steps, the greedy rollout, the confirm stage, saving the controllers,
+    m0's evaluation, the steps, the greedy walk, the confirm stage with the greedy trajectory's
+    evaluation, saving the controllers,
     the plots and summary, best.gif) and `first_chunk_dispatch`, how long the first chunk call
     takes to return: its host side (compiling or loading, unless the warmup did) where JAX
     dispatches asynchronously, but with MuJoCo Warp on a GPU also most of the step's work, since
@@ -79,12 +80,13 @@ def report_stage(run, evolved, best, clock) -> None:
 def write_results(run, evolved, best, phase=lambda name: None) -> None:
     """summary.json and a printed digest of it, with the best bodies of the body log and the
     confirmed ones (with their gait: metres in an episode, and upright); curve.png, best.xml,
-    trajectory.png (if the evolve stage rolled out a greedy trajectory), confirmed.png (if the
+    trajectory.png (if the confirm stage evaluated a greedy trajectory), confirmed.png (if the
     confirm stage's record confirmed bodies) and best.gif (if `run.gif`). `phase("results")`
     is called before best.gif is drawn, `phase("best_gif")` after."""
-    out, space, greedy, saved = run.out, run.p.space, evolved.greedy, best.saved
+    out, space, greedy, saved = run.out, run.p.space, best.greedy, best.saved
     task = run.p.fitness.task
     episode_seconds = task.episode_length * task.frame_skip * space.template.opt.timestep
+    k = None if greedy is None else greedy.controllers or run.p.fitness.ppo.controllers
     summary = {
         "best_fitness": best.fitness,  # the confirmed mean; else (not confirmed) the best draw
         "best_morphology": best.morph.to_dict(),
@@ -94,7 +96,7 @@ def write_results(run, evolved, best, phase=lambda name: None) -> None:
         "confirm_note": best.record["confirm_note"],
         "env_steps": evolved.step,
         "greedy_trajectory": None if greedy is None else [
-            {"action": a, "fitness": f, "morphology": m.to_dict()}
+            {"action": a, "fitness": f, "morphology": m.to_dict(), "controllers": k}
             for a, f, m in zip(["m0"] + greedy.actions, greedy.fitness, greedy.morphs)],
         "best_bodies": evolved.best_bodies,
         "controllers": saved,
@@ -152,10 +154,20 @@ def print_summary(summary: dict, space, best, greedy: Greedy | None,
     print(f"\nbest morphology ({what}):")
     print(space.format(best))
     if greedy is not None:
-        print("\ngreedy trajectory from m0 (each body with a fresh controller):")
+        k = summary["greedy_trajectory"][0]["controllers"]
+        print(f"\ngreedy trajectory from m0 ({greedy_header(greedy.confirmed, k)}):")
         for a, f in zip(["m0"] + greedy.actions, greedy.fitness):
             print(f"  {a:<32} fitness {f:.4g}")
         print(f"\nfinal greedy morphology:\n{space.format(greedy.morphs[-1])}")
+
+
+def greedy_header(confirmed: bool, k: int) -> str:
+    """How the greedy trajectory's fitness was measured, `k` fresh controllers a body, in the
+    confirm stage's call if `confirmed`: the printed digest's words."""
+    if confirmed:
+        return f"each body the mean of {k} fresh controllers, in the confirm stage's call"
+    return ("each body with a fresh controller" if k == 1 else
+            f"each body with {k} fresh controllers, their mean")
 
 
 def print_best_bodies(best: list[dict]) -> None:
