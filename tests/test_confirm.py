@@ -107,7 +107,8 @@ def test_the_greedy_trajectory_joins_the_confirm_call(walker, tmp_path, monkeypa
     """Where the confirm stage confirms, the greedy trajectory's bodies join its one fitness
     call (issue 61): one call of (confirm + horizon + 1) x C evaluations, the greedy bodies
     last, none apart; each greedy body's fitness is the mean of its C values there; the
-    confirmed bodies (confirmed.json, the best body) are the body log's alone."""
+    confirmed bodies (confirmed.json, the best body) are the body log's alone; a --resume of
+    the finished run keeps the trajectory's results and evaluates nothing."""
     from evojax_morph.run import confirm as confirm_module
     from evojax_morph.run import driver
 
@@ -152,6 +153,16 @@ def test_the_greedy_trajectory_joins_the_confirm_call(walker, tmp_path, monkeypa
     means = [e["mean"] for e in record["confirmed"]]
     assert means == sorted(means, reverse=True)
     assert summary["best_body"] == record["confirmed"][0]["body"]
+    assert [g["body"] for g in record["greedy"]] == called[n:]
+
+    # A --resume of the finished run evaluates nothing: the trajectory is the first finish's.
+    again = tmp_path / "again"
+    shutil.copytree(out, again)
+    calls.clear()
+    assert cli.main(["--out", str(again), "--resume", "--steps", "4"]) == 0
+    assert calls == []
+    for name in ("summary.json", "confirmed.json"):
+        assert (again / name).read_text() == (out / name).read_text()
 
 
 def test_confirm_interval_and_values(walker, tmp_path):

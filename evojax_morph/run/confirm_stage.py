@@ -75,6 +75,28 @@ def confirms_now(run, step: int) -> bool:
     return not confirm_skipped(run.cfg) and kept_record(run.out, run.cfg, step) is None
 
 
+def greedy_apart(run, step: int) -> bool:
+    """Whether the greedy trajectory's bodies need a fitness call of their own at `step`: where
+    the confirm stage evaluates nothing now (`confirms_now`) and confirmed.json keeps no
+    results of theirs (`kept_greedy`: a finished run resumed keeps them)."""
+    if confirms_now(run, step):
+        return False
+    kept = kept_record(run.out, run.cfg, step)
+    return not (kept and kept.get("greedy"))
+
+
+def kept_greedy(record: dict, greedy: Greedy, space) -> Greedy | None:
+    """`greedy` with the results confirmed.json's `record` kept for its bodies (a --resume of
+    a finished run, which then evaluates them again no more than the rest: its summary and
+    trajectory stay the first finish's, and controllers/stepT as saved then), or None where the
+    record holds none for these bodies."""
+    entries = record.get("greedy") or []
+    if [e["body"] for e in entries] != [space.canonical(m) for m in greedy.morphs]:
+        return None
+    return greedy._replace(fitness=[e["mean"] for e in entries], params=None,
+                           controllers=record["controllers"], confirmed=True)
+
+
 def greedy_bodies(p: Pipeline) -> int:
     """The bodies of the greedy trajectory, m0 first; 0 for a baseline (no policy to roll out)."""
     return 0 if p.agent.scores is None else p.greedy_env.horizon + 1
@@ -104,7 +126,8 @@ def confirm_stage(run, evolved, ahead, clock) -> Best:
     if joined is not None:
         greedy = greedy_confirmed(greedy, joined)
     elif greedy is not None:
-        greedy = run.greedy_evaluation(greedy, run.key_greedy)
+        greedy = (kept_greedy(record, greedy, p.space)
+                  or run.greedy_evaluation(greedy, run.key_greedy))
     clock.phase("confirm")
     ahead.close()  # best.gif's replay and GL
     best, best_fitness, best_params, best_cfg = reported_best(
@@ -169,6 +192,9 @@ def confirm_record(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print,
         "times from scratch (fresh keys and controllers, no inheritance) in one fitness call; "
         f"mean and 95% Student-t interval over the {c}"
     )
+    if greedy:  # the greedy trajectory's, for a --resume to keep (`kept_greedy`)
+        record["greedy"] = [{"body": f.body, "mean": f.mean,
+                             "values": [float(v) for v in f.values]} for f in joined]
     return record, found[0], None if greedy is None else joined
 
 
@@ -258,6 +284,8 @@ def save_controllers(out: Path, p: Pipeline, seed: int, best, best_fitness: floa
         bodies += [(f"step{t}", m, params, f, greedy_cfg) for t, (m, params, f)
                    in enumerate(zip(greedy.morphs, greedy.params, greedy.fitness))]
     for name, morph, params, fitness, fit_cfg in bodies:
+        if params is None and name != "best":  # kept from the first finish (`kept_greedy`)
+            continue
         label = name if name == "best" else f"step {name[4:]}"
         saved = saved_controllers.SavedController(p.space, fit_cfg, seed, morph, params, fitness,
                                                   label)

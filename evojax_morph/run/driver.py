@@ -30,7 +30,7 @@ from evojax_morph.run.confirm_stage import (
     best_controllers,
     confirm_jobs,
     confirm_stage,
-    confirms_now,
+    greedy_apart,
 )
 from evojax_morph.run.pipeline import (
     Greedy,
@@ -277,13 +277,13 @@ def _record_chunk(run: Run, step: int, n: int, metrics: dict, writer) -> list[di
 
 def _evolve_jobs(run: Run, state, start: int) -> list[Job]:
     """The chunks of the sizes the steps from `start` take, then the greedy walk, and its
-    bodies' evaluation where the confirm stage's call does not take them (`confirms_now`)."""
+    bodies' evaluation where the confirm stage's call does not take them (`greedy_apart`)."""
     cfg, p = run.cfg, run.p
     sizes = [min(cfg.chunk, cfg.steps - s) for s in range(start, cfg.steps, cfg.chunk)]
     jobs = [Job(f"chunk {n}", lambda n=n: p.agent.chunk.lower(state, n))
             for n in dict.fromkeys(sizes)]
     if run.greedy_walk is not None:
-        apart = not confirms_now(run, max(start, cfg.steps))
+        apart = greedy_apart(run, max(start, cfg.steps))
         jobs.append(Job("greedy", lambda: [
             run.greedy_walk.lower(state.learner, state.first, run.key_greedy),
             *([run.greedy_evaluation.lower(run.key_greedy)] if apart else [])]))
