@@ -79,10 +79,10 @@ def greedy_apart(run, step: int) -> bool:
     """Whether the greedy trajectory's bodies need a fitness call of their own at `step`: where
     the confirm stage evaluates nothing now (`confirms_now`) and confirmed.json keeps no
     results of theirs (`kept_greedy`: a finished run resumed keeps them)."""
-    if confirms_now(run, step):
-        return False
-    kept = kept_record(run.out, run.cfg, step)
-    return not (kept and kept.get("greedy"))
+    if confirm_skipped(run.cfg):
+        return True
+    kept = kept_record(run.out, run.cfg, step)  # None: it confirms now, the bodies with it
+    return kept is not None and not kept.get("greedy")
 
 
 def kept_greedy(record: dict, greedy: Greedy, space) -> Greedy | None:
