@@ -146,6 +146,11 @@ def test_resume_matches_an_uninterrupted_run(tmp_path, straight):
                                  "controllers", "results", "best_gif"]
     assert abs(sum(t["phases"].values()) - t["seconds"]) < 0.5, t  # the phases fill the call
     assert 0 <= t["first_chunk_dispatch"] <= t["phases"]["steps"], t
+    # finer: the resumed call built and restored (no m0), and ran two chunks after their jobs
+    assert list(t["parts"]) == ["build"] and len(t["chunk_seconds"]) == 2, t
+    assert sum(t["chunk_seconds"]) <= t["phases"]["steps"] and "chunk 3" in t["waits"], t
+    first = json.loads((straight / "timing.json").read_text())["parts"]
+    assert list(first) == ["build", "m0_lower", "m0_compile", "m0_evaluate"], first
     assert t["where"]["devices"] == jax.device_count() and t["where"]["physics"] == "jax", t
     assert json.loads((split / "config.json").read_text())["physics"] == "jax"  # auto on a CPU
     assert (straight / "metrics.csv").read_text() == (split / "metrics.csv").read_text()

@@ -40,6 +40,7 @@ from __future__ import annotations
 import os
 import sys
 import threading
+import time
 import warnings
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -76,6 +77,7 @@ class Warmup:
         self.on = enabled() if on is None else on
         self.compiles = compiles
         self._jobs: dict[str, Future] = {}
+        self.waited: dict[str, float] = {}  # job name: seconds `wait` took (timing.json)
         self._lowering: set[str] = set()  # the names of `compile`'s jobs
         self._go = threading.Event()  # `start`
         self._dropped = False  # `close(wait=False)`: the jobs not begun return at once
@@ -124,6 +126,7 @@ class Warmup:
         job = self._jobs.pop(name, None)
         if job is None:
             return
+        start = time.perf_counter()
         try:
             result = job.result()
             if name in self._lowering and not self.compiles:
@@ -132,6 +135,7 @@ class Warmup:
         except Exception as e:  # the call compiles it instead
             warnings.warn(f"warmup: {name} failed ahead ({type(e).__name__}: {e}); its call "
                           "does the work", RuntimeWarning, stacklevel=2)
+        self.waited[name] = round(time.perf_counter() - start, 2)
 
     def close(self, wait: bool = True) -> None:
         """Waits for every job (or, `wait` False, drops those not begun); then the thread is

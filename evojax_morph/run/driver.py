@@ -70,16 +70,24 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
 
 
 class Clock:
-    """The wall clock of a run's phases, from its start, for timing.json."""
+    """The wall clock of a run's phases, from its start, for timing.json; and of parts within a
+    phase, and the main thread's waits for the compile-ahead jobs, to say where a phase goes."""
 
-    def __init__(self):
-        self.started = self.last = time.perf_counter()
+    def __init__(self, waits: dict | None = None):
+        self.started = self.last = self.mark = time.perf_counter()
         self.phases = {}  # name: seconds since the phase before
+        self.parts = {}  # name: seconds since the part or phase before
+        self.waits = {} if waits is None else waits  # `Warmup.waited`: job name: seconds
 
     def phase(self, name: str) -> None:
         now = time.perf_counter()
         self.phases[name] = round(now - self.last, 1)
-        self.last = now
+        self.last = self.mark = now
+
+    def part(self, name: str) -> None:
+        now = time.perf_counter()
+        self.parts[name] = round(now - self.mark, 2)
+        self.mark = now
 
 
 class Run(NamedTuple):
@@ -115,13 +123,14 @@ class Evolved(NamedTuple):
 
 def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) -> None:
     """The run as stages: build, warm up (m0 or a checkpoint), evolve, confirm, report."""
-    clock = Clock()
+    clock = Clock(ahead.waited)
     run, step, state, abstract = _build(cfg, out, resume, gif)
+    clock.part("build")
     # The stages' jobs, queued before m0's evaluation, begun after its lowering.
     end = max(step or 0, cfg.steps)  # the step the run ends at
     ahead.collect(_evolve_jobs(run, abstract, step or 0) + confirm_jobs(run, end)
                   + report_jobs(run, best_controllers(cfg, run.p)))
-    step, state, rows = _warm_up(run, step, state, ahead)
+    step, state, rows = _warm_up(run, step, state, ahead, clock)
     clock.phase("build_and_m0")
     evolved = _evolve(run, step, state, rows, ahead, clock)
     best = confirm_stage(run, evolved, ahead, clock)
@@ -169,9 +178,10 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
     return run, step, state, abstract
 
 
-def _warm_up(run: Run, step, state, ahead: Warmup):
+def _warm_up(run: Run, step, state, ahead: Warmup, clock: Clock):
     """The run's start: the restored `state` at `step` with metrics.csv's rows up to it, or
-    (`step` None) m0 evaluated in every evolution, at step 0. Returns (step, state, rows)."""
+    (`step` None) m0 evaluated in every evolution, at step 0, its lowering, compiling (or
+    loading) and evaluation timed as the `clock`'s parts. Returns (step, state, rows)."""
     if step is not None:
         ahead.start()
         with open(run.out / "metrics.csv") as f:
@@ -182,9 +192,13 @@ def _warm_up(run: Run, step, state, ahead: Warmup):
         return step, state, rows
     run.log("evaluating m0 in every evolution...")
     m0 = run.p.agent.init.lower(run.key_init)
+    clock.part("m0_lower")
     ahead.start()  # after m0's lowering: the two would take turns at the GIL
-    state = m0.compile()(run.key_init)
+    m0 = m0.compile()
+    clock.part("m0_compile")
+    state = m0(run.key_init)
     first = to_host(state.first)
+    clock.part("m0_evaluate")
     if run.lead:
         run.bodies.truncate(-1)
         run.bodies.add(0, first.morph, first.fitness, first.fitness_std, first.diverged,

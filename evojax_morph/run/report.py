@@ -25,7 +25,10 @@ def timing(total: float, chunks: list[tuple[int, float]]) -> dict:
     the plots and summary, best.gif) and `first_chunk_dispatch`, how long the first chunk call
     takes to return: its host side (compiling or loading, unless the warmup did) where JAX
     dispatches asynchronously, but with MuJoCo Warp on a GPU also most of the step's work, since
-    XLA runs Warp's callbacks on the calling thread (docs/benchmarks.md). A step is timed by the
+    XLA runs Warp's callbacks on the calling thread (docs/benchmarks.md). Finer, to say where a
+    phase goes: `chunk_seconds` (each chunk call and its host copy), `parts` (the build, and m0's
+    lowering, compiling or loading, and evaluation) and `waits` (how long the main thread waited
+    for each compile-ahead job, compiling it there with Warp on a GPU). A step is timed by the
     chunks after the first (whose call may compile); None with one chunk or none."""
     steps = sum(n for n, _ in chunks)
     step = float(np.median([s / n for n, s in chunks[1:]])) if chunks[1:] else None
@@ -69,7 +72,8 @@ def report_stage(run, evolved, best, clock) -> None:
     write_results(run, evolved, best, clock.phase)
     times = timing(time.perf_counter() - clock.started, evolved.chunk_seconds) | {
         "phases": clock.phases, "first_chunk_dispatch": evolved.dispatch,
-        "where": where(run.cfg)}
+        "chunk_seconds": [round(s, 2) for _, s in evolved.chunk_seconds],
+        "parts": clock.parts, "waits": clock.waits, "where": where(run.cfg)}
     (run.out / "timing.json").write_text(json.dumps(times, indent=1))
     if times["step_seconds"]:
         print(f"time: {times['seconds']:.0f} s, {times['step_seconds']:.3g} s a step, "
