@@ -3,7 +3,6 @@ bodies."""
 
 from __future__ import annotations
 
-import jax
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -46,7 +45,7 @@ def plot_curve(path, steps, median, q25, q75, width: int = 9, label: str = "rewa
 
 def draw_morphology(ax, space: Space, m: Morphology) -> None:
     """The body at rest in the x-z plane: capsules as thick segments, the floor as a line."""
-    layout = jax.tree.map(np.asarray, space.layout(m))
+    layout = space.host_layout(m)
     plan = space.plan
     xlim = (-1.6, 1.6)
     fig = ax.get_figure()

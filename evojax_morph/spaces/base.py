@@ -282,7 +282,21 @@ class Space(abc.ABC):
         """A standalone MJCF of `m` alone, without padding, named as in the template."""
         if m.active.ndim != 1:
             raise ValueError("to_mjcf takes one morphology, not a batch")
-        return mjcf.write_mjcf(self.plan, self.layout(m), self.name, padded=False)
+        return mjcf.write_mjcf(self.plan, self.host_layout(m), self.name, padded=False)
+
+    def host_layout(self, m: Morphology) -> templates.Layout:
+        """`layout` of one body as numpy arrays, for the host (MJCF, drawings): one compiled
+        call on the CPU where JAX has one. Run eagerly it would be hundreds of small ops, each
+        compiled on its first use, on the accelerator (seconds a run on a GPU)."""
+        try:
+            m = jax.device_put(m, jax.local_devices(backend="cpu")[0])
+        except RuntimeError:  # JAX_PLATFORMS without the CPU: the default device does it
+            pass
+        return jax.tree.map(np.asarray, self._host_layout(m))
+
+    @functools.cached_property
+    def _host_layout(self) -> Callable:
+        return jax.jit(self.layout)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(max_nodes={self.max_nodes})"
