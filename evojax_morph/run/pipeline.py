@@ -154,7 +154,8 @@ def make_greedy_walk(p: Pipeline):
         bodies = jax.tree.map(lambda m0, ms: jnp.concatenate([m0, ms[:, 0]]), evo.morph, morphs)
         return bodies, actions
 
-    env0 = lambda first: jax.tree.map(lambda x: x[:1], first)  # noqa: E731
+    # one program, not an eager slice per array of the state, each compiled on first use
+    env0 = jax.jit(lambda first: jax.tree.map(lambda x: x[:1], first))
 
     def on_device(learner, first, key):  # env 0 of `first`, with the rest, on `device`, by way
         # of the host: the agent's arrays may span the devices of several processes
