@@ -1,5 +1,6 @@
 """Shared test set-up: CPU backend, a persistent compilation cache, and small helpers."""
 
+import contextlib
 import os
 import subprocess
 import sys
@@ -7,6 +8,7 @@ from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
+import jax
 import pytest
 
 import evojax_morph as em
@@ -48,6 +50,21 @@ def on_four_devices(script: str, *args: str) -> subprocess.CompletedProcess:
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
+
+
+@contextlib.contextmanager
+def float64():
+    """`jax.enable_x64` for a block, with JAX's caches cleared on entry and exit. jax 0.10
+    keeps a numpy constant traced under one setting in that setting's dtype. A later program
+    under the other setting then fails: an f64 buffer reaches an f32 parameter
+    (RuntimeProgramInputMismatch), or the lowering fails to verify. Without the clears, one
+    float64 test broke the next float32 test on its pytest-xdist worker."""
+    jax.clear_caches()
+    try:
+        with jax.enable_x64(True):
+            yield
+    finally:
+        jax.clear_caches()
 
 
 def flip(f: Path) -> None:

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import float64
 
 import evojax_morph as em
 from evojax_morph.spaces import crawler as cr
@@ -154,3 +155,16 @@ def test_size_classes_hold_the_bodies_of_shallow_chains(space):
         np.testing.assert_allclose(got.jnt_axis, np.asarray(want.jnt_axis)[
             [space.template.joint(small.template.joint(j).name).id
              for j in range(small.template.njnt)]], atol=1e-6)
+
+
+def test_a_float32_template_after_a_float64_block():
+    """A body laid out in float64 (conftest's `float64`, as tests/test_physics.py exports it)
+    leaves the next float32 work intact: a new space's template (laid out eagerly, with the same
+    numpy slot constants) builds and lays out in float32. Without the cleared caches, jax 0.10
+    failed here (RuntimeProgramInputMismatch: an f64 buffer for an f32 parameter)."""
+    with float64():
+        wide = em.make_space("crawler").host_layout(em.make_space("crawler").initial())
+    fresh = em.make_space("crawler", horizon=3)
+    assert fresh.template.nbody > 1
+    assert wide.geom_to.dtype == np.float64
+    assert fresh.layout(fresh.initial()).geom_to.dtype == jnp.float32

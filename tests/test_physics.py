@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from conftest import float64
 
 import evojax_morph as em
 from evojax_morph.physics.templates import mjx
@@ -130,7 +131,7 @@ def stepped(space, num_morphs, steps, batches=1, solver=SOLVER) -> Stepped:
     """`num_morphs` random bodies of `space` (`sample_morphologies`) driven by random controls
     for `steps` steps (`specialise_and_step`, the solver's budget `solver`), and their
     exports."""
-    with jax.enable_x64(True):
+    with float64():
         morphs = sample_morphologies(space, num_morphs)
         ctrls = np.random.default_rng(0).uniform(-1, 1, (num_morphs, steps, space.template.nu))
         models, qpos, qvel = specialise_and_step(space, morphs, jnp.asarray(ctrls), batches, solver)
@@ -273,7 +274,7 @@ def test_inactive_geoms_never_touch():
     """A removed foot buried in the floor makes no contact force: qacc equals the export's."""
     space = em.make_space("bad_walker")
     m = space.mutate(space.initial(), bw.LONG, bw.REMOVE)
-    with jax.enable_x64(True):
+    with float64():
         model = jax.jit(space.mjx_model)(m)
         ref = mujoco.MjModel.from_xml_string(space.to_mjcf(m))
         rootz = space.template.jnt_qposadr[space.template.joint("rootz").id]

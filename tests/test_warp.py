@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from conftest import float64
 from mujoco.mjx import warp as mjx_warp
 
 import evojax_morph as em
@@ -139,7 +140,7 @@ def test_flat_jax_batch_equals_nested():
 
 def test_unavailable_warp_is_a_clear_error(monkeypatch):
     space = em.make_space("bad_walker")
-    with jax.enable_x64(True):  # float64 on: Warp cannot run, whether installed or not
+    with float64():  # float64 on: Warp cannot run, whether installed or not
         ok, reason = ew.available()
         assert not ok and reason
         with pytest.raises(RuntimeError, match="the Warp physics cannot run: " + re.escape(reason)):
