@@ -108,15 +108,26 @@ def test_physics_that_cannot_run_exits_with_2(monkeypatch, capsys, tmp_path):
 @pytest.fixture(scope="module")
 def straight(tmp_path_factory):
     """An uninterrupted 9-step run, seed 3 (checkpoints at steps 3, 6 and 9). Its confirm stage
-    makes no fitness call: the predefined fitness is deterministic."""
+    makes no fitness call: the predefined fitness is deterministic. Its engine has a preload
+    (as Warp's, `Engine.preload`), asked once for this process's devices."""
     out = tmp_path_factory.mktemp("straight") / "run"
 
     def no_call(*_, **__):
         raise AssertionError("a deterministic fitness confirmed")
 
+    asked = []
+
+    def preload(devices):
+        asked.append(list(devices))
+        done = concurrent.futures.Future()
+        done.set_result(None)
+        return done
+
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(confirming, "confirm", no_call)
+        patch.setitem(engines._REGISTRY, "jax", engines.JAX._replace(preload=preload))
         assert cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)]) == 0
+    assert asked == [jax.local_devices()]
     return out
 
 
@@ -150,7 +161,8 @@ def test_resume_matches_an_uninterrupted_run(tmp_path, straight):
     assert list(t["parts"]) == ["build"] and len(t["chunk_seconds"]) == 2, t
     assert sum(t["chunk_seconds"]) <= t["phases"]["steps"] and "chunk 3" in t["waits"], t
     first = json.loads((straight / "timing.json").read_text())["parts"]
-    assert list(first) == ["build", "m0_lower", "m0_compile", "m0_evaluate"], first
+    assert list(first) == ["build", "m0_lower", "m0_compile", "m0_preload_wait",
+                           "m0_evaluate"], first
     assert t["where"]["devices"] == jax.device_count() and t["where"]["physics"] == "jax", t
     assert json.loads((split / "config.json").read_text())["physics"] == "jax"  # auto on a CPU
     assert (straight / "metrics.csv").read_text() == (split / "metrics.csv").read_text()

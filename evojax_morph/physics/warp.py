@@ -34,6 +34,7 @@ recomputed from the capsule sizes.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import functools
 import os
@@ -185,6 +186,38 @@ def count_stream_registrations() -> None:
     counted_register.counted = True
     core.wp_cuda_stream_register = counted_register
     core.wp_cuda_stream_unregister = counted_unregister
+
+
+# The modules of MuJoCo Warp that a step loads on every space, all at their default block size,
+# beside MJX's own Warp call (`mujoco.mjx.warp.ffi`). Measured on the CPU (warp-lang 1.19, MJX
+# 3.17, one PPO evaluation of each of the four spaces, every module load and kernel launch
+# recorded): these 7, and 23 to 28 modules of one kernel each, which MuJoCo Warp makes from the
+# model when a step first runs, some launched at the block sizes of `BlockDim`.
+FIXED_MODULES = ("smooth", "passive", "forward", "solver", "support", "constraint")
+
+
+def preload(devices) -> concurrent.futures.Future:
+    """Starts compiling (or loading from Warp's kernel cache) the `FIXED_MODULES` for the JAX
+    `devices`, several at once, on a thread; `.result()` waits for them (and raises what a load
+    raised). Without it they compile one after another inside the first Warp call: on a CPU
+    with an empty Warp cache, 16.4 s of that call's 24.7 s of compiling. A run waits for it
+    before its first call, because a module loaded during Warp's graph capture is untested."""
+    import importlib
+
+    import warp as wp
+    from mujoco.mjx import warp as mjx_warp
+
+    package = mjx_warp.mujoco_warp.__name__ + "._src."
+    modules = [importlib.import_module(package + name) for name in FIXED_MODULES]
+    modules.append(importlib.import_module("mujoco.mjx.warp.ffi"))
+    targets = list({str(d): d for d in map(wp.device_from_jax, devices)}.values())
+    workers = max(1, min(len(modules), (os.cpu_count() or 2) // 2))
+    load = lambda: wp.force_load(  # noqa: E731
+        targets, [wp.get_module(m.__name__) for m in modules], max_workers=workers)
+    pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="warp-preload")
+    future = pool.submit(load)
+    pool.shutdown(wait=False)
+    return future
 
 
 def _require() -> None:

@@ -181,7 +181,8 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
 def _warm_up(run: Run, step, state, ahead: Warmup, clock: Clock):
     """The run's start: the restored `state` at `step` with metrics.csv's rows up to it, or
     (`step` None) m0 evaluated in every evolution, at step 0, its lowering, compiling (or
-    loading) and evaluation timed as the `clock`'s parts. Returns (step, state, rows)."""
+    loading), the wait for the engine's preload (`Engine.preload`) and evaluation timed as the
+    `clock`'s parts. Returns (step, state, rows)."""
     if step is not None:
         ahead.start()
         with open(run.out / "metrics.csv") as f:
@@ -193,9 +194,16 @@ def _warm_up(run: Run, step, state, ahead: Warmup, clock: Clock):
     run.log("evaluating m0 in every evolution...")
     m0 = run.p.agent.init.lower(run.key_init)
     clock.part("m0_lower")
-    ahead.start()  # after m0's lowering: the two would take turns at the GIL
+    # After m0's lowering, as the two would take turns at the GIL: the compile-ahead jobs, and
+    # the engine's fixed kernels (Warp's), which compile beside m0's program, not inside its call.
+    ahead.start()
+    preload = registered(run.cfg.physics).preload
+    loading = preload(batch_mesh().local_devices) if preload else None
     m0 = m0.compile()
     clock.part("m0_compile")
+    if loading:
+        loading.result()
+        clock.part("m0_preload_wait")
     state = m0(run.key_init)
     first = to_host(state.first)
     clock.part("m0_evaluate")

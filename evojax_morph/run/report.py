@@ -27,7 +27,8 @@ def timing(total: float, chunks: list[tuple[int, float]]) -> dict:
     dispatches asynchronously, but with MuJoCo Warp on a GPU also most of the step's work, since
     XLA runs Warp's callbacks on the calling thread (docs/benchmarks.md). Finer, to say where a
     phase goes: `chunk_seconds` (each chunk call and its host copy), `parts` (the build, and m0's
-    lowering, compiling or loading, and evaluation) and `waits` (how long the main thread waited
+    lowering, compiling or loading, the wait for the engine's preload with MuJoCo Warp, and
+    evaluation) and `waits` (how long the main thread waited
     for each compile-ahead job, compiling it there with Warp on a GPU). A step is timed by the
     chunks after the first (whose call may compile); None with one chunk or none."""
     steps = sum(n for n, _ in chunks)
