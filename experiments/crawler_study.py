@@ -45,6 +45,7 @@ import numpy as np
 
 import evojax_morph as em
 from evojax_morph.fitnesses import get_fitness
+from evojax_morph.physics import engines
 from evojax_morph.run import study
 from evojax_morph.run.checkpoints import write_atomic
 from evojax_morph.run.pipeline import agent_config, build
@@ -85,9 +86,11 @@ def run_part(args, seeds: range, part: Path, deadline: float) -> dict | None:
     cfg = run_config(args.methods[0], setup_of(args))
     methods, p = study.methods_from(cfg, args.methods)
     s = study.make_study(methods, len(seeds))
+    preload = engines.registered(cfg.physics).preload  # Warp's fixed modules, while compiling
     res = study.run_study(s, seed_keys(seeds), args.steps, args.chunk,
                           resume=part / "state.pkl", deadline=deadline,
-                          log=lambda line: print(line, flush=True))
+                          log=lambda line: print(line, flush=True),
+                          preload=preload and (lambda: preload(jax.local_devices())))
     if res is None:
         return None
     print(f"seeds {seeds.start} to {seeds.stop - 1}: {s.evaluations} evaluations a call, "

@@ -57,7 +57,15 @@ def runs_as_alone(names, tmp_path):
     same study resumed from its file after 2 steps against one go of 4, bit for bit."""
     methods, s = make(names)
     keys = jax.random.split(jax.random.PRNGKey(3), SEEDS)
-    whole = study.run_study(s, keys, STEPS, chunk=2)
+    events = []  # an engine's preload (Warp's) is started once and waited for once, at first
+
+    class Loading:
+        def result(self):
+            events.append("waited")
+
+    whole = study.run_study(s, keys, STEPS, chunk=2, log=lambda _: events.append("chunk"),
+                            preload=lambda: events.append("preload") or Loading())
+    assert events == ["preload", "waited", "chunk", "chunk"], events
     study.run_study(s, keys, 2, chunk=2, resume=tmp_path / "s.pkl")  # a call that stops
     resumed = study.run_study(s, keys, STEPS, chunk=2, resume=tmp_path / "s.pkl")
     for a, b in zip(jax.tree.leaves((whole["states"], whole["metrics"])),

@@ -137,7 +137,8 @@ def make_study(methods: Sequence[Method], seeds: int, fitness_fn: Callable | Non
 
 def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
               resume: Path | None = None, deadline: float | None = None,
-              since: float | None = None, log: Callable | None = None) -> dict | None:
+              since: float | None = None, log: Callable | None = None,
+              preload: Callable | None = None) -> dict | None:
     """The study's host loop from the seeds' `keys` (S,): `num_steps` steps in chunks of
     `chunk`, resumable.
 
@@ -146,7 +147,9 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
     the last whole save) and picked up by the next call; past `deadline` (time.time()) it
     returns None after the chunk in progress, to be called again. since: when this call's work
     began (time.time(), e.g. before building the study; default: now). log: called with a
-    line of progress after every chunk (e.g. `print`).
+    line of progress after every chunk (e.g. `print`). preload: None, or a function starting
+    the engine's preload (`Engine.preload`) and returning its Future: started before this
+    call's first program compiles, waited for before that program runs.
 
     Returns:
       {"metrics": {method: {name: (num_steps, S, ...)}}, "states": the final states (host),
@@ -157,10 +160,17 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
       `since`, compiles included}.
     """
     called = time.time() if since is None else since
+    loading = [preload()] if preload is not None else []
+
+    def loaded(program):  # the preload waited for, before the call's first program runs
+        while loading:
+            loading.pop().result()
+        return program
+
     so_far = pickle.loads(resume.read_bytes()) if resume and resume.exists() else None
     if so_far is None:
         start = time.perf_counter()
-        states = jax.block_until_ready(study.init(keys))
+        states = jax.block_until_ready(loaded(study.init.lower(keys).compile())(keys))
         so_far = {"metrics": [], "chunk_seconds": [], "chunk_steps": [], "done": 0,
                   "seconds": 0.0, "init_seconds": time.perf_counter() - start}
     else:
@@ -179,7 +189,7 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
             return None
         n = min(chunk, num_steps - so_far["done"])
         if n not in compiled:  # compile outside the clock, then time the compiled call alone
-            compiled[n] = study.chunk.lower(states, n).compile()
+            compiled[n] = loaded(study.chunk.lower(states, n).compile())
         start = time.perf_counter()
         states, metrics = jax.block_until_ready(compiled[n](states))
         so_far["chunk_seconds"].append(time.perf_counter() - start)
