@@ -116,6 +116,17 @@ def straight(tmp_path_factory):
         raise AssertionError("a deterministic fitness confirmed")
 
     asked = []
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(confirming, "confirm", no_call)
+        patch.setitem(engines._REGISTRY, "jax", engines.JAX._replace(preload=preloads(asked)))
+        assert cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)]) == 0
+    assert asked == [jax.local_devices()]
+    return out
+
+
+def preloads(asked: list):
+    """An engine's preload (`Engine.preload`, as Warp's) that lists the devices it is asked
+    for and is done at once."""
 
     def preload(devices):
         asked.append(list(devices))
@@ -123,12 +134,7 @@ def straight(tmp_path_factory):
         done.set_result(None)
         return done
 
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(confirming, "confirm", no_call)
-        patch.setitem(engines._REGISTRY, "jax", engines.JAX._replace(preload=preload))
-        assert cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)]) == 0
-    assert asked == [jax.local_devices()]
-    return out
+    return preload
 
 
 def test_confirm_is_a_no_op_on_a_deterministic_fitness(straight):
@@ -140,14 +146,17 @@ def test_confirm_is_a_no_op_on_a_deterministic_fitness(straight):
     assert summary["best_body"] == draw["body"]
 
 
-def test_resume_matches_an_uninterrupted_run(tmp_path, straight):
+def test_resume_matches_an_uninterrupted_run(tmp_path, straight, monkeypatch):
     split = tmp_path / "split"
     assert (
         cli.main(TINY + ["--steps", "3", "--seed", "3", "--out", str(split)]) == 0
     )  # "interrupted"
     with pytest.raises(SystemExit):  # a second start in the same directory must say --resume
         cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(split)])
+    asked = []  # the resumed call has no m0: it waits for the preload before its first chunk
+    monkeypatch.setitem(engines._REGISTRY, "jax", engines.JAX._replace(preload=preloads(asked)))
     assert cli.main(TINY + ["--steps", "9", "--out", str(split), "--resume"]) == 0
+    assert asked == [jax.local_devices()]
     a, b = (json.loads((d / "summary.json").read_text()) for d in (straight, split))
     assert a == b
     # timing.json: this call's clock; the resumed call ran steps 4-9 in two chunks of 3
@@ -160,6 +169,7 @@ def test_resume_matches_an_uninterrupted_run(tmp_path, straight):
     # finer: the resumed call built and restored (no m0), and ran two chunks after their jobs
     assert list(t["parts"]) == ["build"] and len(t["chunk_seconds"]) == 2, t
     assert sum(t["chunk_seconds"]) <= t["phases"]["steps"] and "chunk 3" in t["waits"], t
+    assert t["waits"]["preload"] >= 0, t
     first = json.loads((straight / "timing.json").read_text())["parts"]
     assert list(first) == ["build", "m0_lower", "m0_compile", "m0_preload_wait",
                            "m0_evaluate"], first

@@ -130,9 +130,9 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
     end = max(step or 0, cfg.steps)  # the step the run ends at
     ahead.collect(_evolve_jobs(run, abstract, step or 0) + confirm_jobs(run, end)
                   + report_jobs(run, best_controllers(cfg, run.p)))
-    step, state, rows = _warm_up(run, step, state, ahead, clock)
+    step, state, rows, loading = _warm_up(run, step, state, ahead, clock)
     clock.phase("build_and_m0")
-    evolved = _evolve(run, step, state, rows, ahead, clock)
+    evolved = _evolve(run, step, state, rows, ahead, clock, loading)
     best = confirm_stage(run, evolved, ahead, clock)
     if run.lead:
         report_stage(run, evolved, best, clock)
@@ -182,22 +182,24 @@ def _warm_up(run: Run, step, state, ahead: Warmup, clock: Clock):
     """The run's start: the restored `state` at `step` with metrics.csv's rows up to it, or
     (`step` None) m0 evaluated in every evolution, at step 0, its lowering, compiling (or
     loading), the wait for the engine's preload (`Engine.preload`) and evaluation timed as the
-    `clock`'s parts. Returns (step, state, rows)."""
+    `clock`'s parts. Returns (step, state, rows, the preload still to wait for before the
+    first chunk call: a resumed run's, else None)."""
+    preload = registered(run.cfg.physics).preload
     if step is not None:
         ahead.start()
+        loading = preload(batch_mesh().local_devices) if preload else None
         with open(run.out / "metrics.csv") as f:
             rows = [r for r in csv.DictReader(f) if int(r["step"]) <= step]
         if run.lead:
             run.bodies.truncate(step)
         run.log(f"resumed at step {step}")
-        return step, state, rows
+        return step, state, rows, loading
     run.log("evaluating m0 in every evolution...")
     m0 = run.p.agent.init.lower(run.key_init)
     clock.part("m0_lower")
     # After m0's lowering, as the two would take turns at the GIL: the compile-ahead jobs, and
     # the engine's fixed kernels (Warp's), which compile beside m0's program, not inside its call.
     ahead.start()
-    preload = registered(run.cfg.physics).preload
     loading = preload(batch_mesh().local_devices) if preload else None
     m0 = m0.compile()
     clock.part("m0_compile")
@@ -212,14 +214,16 @@ def _warm_up(run: Run, step, state, ahead: Warmup, clock: Clock):
         run.bodies.add(0, first.morph, first.fitness, first.fitness_std, first.diverged,
                        distance=first.distance, upright=first.upright)
         run.bodies.commit()
-    return 0, state, []
+    return 0, state, [], None
 
 
-def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: Clock) -> Evolved:
+def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: Clock,
+            loading=None) -> Evolved:
     """The steps from `step` to cfg.steps, chunk by chunk: metrics.csv, the body log and
     TensorBoard after each chunk, a checkpoint every cfg.checkpoint_every chunks and at the end;
     then the body log's best, and the trained agent's greedy walk (an agent with a policy; the
-    confirm stage evaluates its bodies)."""
+    confirm stage evaluates its bodies). `loading`: the engine's preload, waited for before the
+    first chunk call (timed in the clock's waits as "preload")."""
     from tensorboardX import SummaryWriter
     from tqdm import tqdm
 
@@ -231,6 +235,10 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: 
     while step < cfg.steps:
         n = min(cfg.chunk, cfg.steps - step)
         ahead.wait(f"chunk {n}")
+        if loading is not None:
+            waited = time.perf_counter()
+            loading.result()
+            clock.waits["preload"], loading = round(time.perf_counter() - waited, 2), None
         chunk_start = time.perf_counter()
         state, metrics = run.p.agent.chunk(state, n)
         if dispatch is None:  # when the call returns; to_host then waits for the device
