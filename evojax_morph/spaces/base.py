@@ -34,6 +34,20 @@ class SizeClass(NamedTuple):
     fits: Callable[[Morphology], jax.Array]
 
 
+def _on_host(fn: Callable, *args):
+    """`fn(*args)`, `fn` jitted and `args` concrete, as numpy arrays: compiled once (then
+    cached by JAX) and run on the CPU where JAX has one, else on the default device. A compiled
+    program's call runs even inside a trace, where the jitted function's would join the trace
+    (or, under `jax.ensure_compile_time_eval`, run op by op)."""
+    args = jax.tree.map(np.asarray, args)
+    try:
+        device = jax.local_devices(backend="cpu")[0]
+    except RuntimeError:  # JAX_PLATFORMS without the CPU
+        device = None
+    with jax.default_device(device):
+        return jax.tree.map(np.asarray, fn.lower(*args).compile()(*args))
+
+
 class Space(abc.ABC):
     """A morphology search space: its initial body, its mutations and its physics.
 
@@ -248,14 +262,14 @@ class Space(abc.ABC):
 
     @functools.cached_property
     def template(self) -> mujoco.MjModel:
-        """The padded MuJoCo model holding every slot of the space."""
-        with jax.ensure_compile_time_eval():  # may first be asked for inside a trace
-            full = self.layout(self.initial())
-            full = full.replace(
-                limb_active=jnp.ones_like(full.limb_active),
-                geom_active=jnp.ones_like(full.geom_active),
-            )
-            return mjcf.compile_template(self.plan, full, f"{self.name}_template")
+        """The padded MuJoCo model holding every slot of the space: m0's layout with every
+        slot on. Two compiled programs on the host (`host_layout`), also when first asked for
+        inside a trace; op by op, m0 and its layout were 30 to 130 programs, each compiled
+        on its first use, on the accelerator."""
+        full = self.host_layout(_on_host(jax.jit(self.initial)))
+        full = full.replace(limb_active=np.ones_like(full.limb_active),
+                            geom_active=np.ones_like(full.geom_active))
+        return mjcf.compile_template(self.plan, full, f"{self.name}_template")
 
     @functools.cached_property
     def _index(self) -> templates.TemplateIndex:
@@ -285,14 +299,10 @@ class Space(abc.ABC):
         return mjcf.write_mjcf(self.plan, self.host_layout(m), self.name, padded=False)
 
     def host_layout(self, m: Morphology) -> templates.Layout:
-        """`layout` of one body as numpy arrays, for the host (MJCF, drawings): one compiled
-        call on the CPU where JAX has one. Run eagerly it would be hundreds of small ops, each
-        compiled on its first use, on the accelerator (seconds a run on a GPU)."""
-        try:
-            m = jax.device_put(m, jax.local_devices(backend="cpu")[0])
-        except RuntimeError:  # JAX_PLATFORMS without the CPU: the default device does it
-            pass
-        return jax.tree.map(np.asarray, self._host_layout(m))
+        """`layout` of one body (concrete) as numpy arrays, for the host (MJCF, drawings, the
+        template): one compiled call (`_on_host`). Run eagerly it would be hundreds of small
+        ops, each compiled on its first use, on the accelerator (seconds a run on a GPU)."""
+        return _on_host(self._host_layout, m)
 
     @functools.cached_property
     def _host_layout(self) -> Callable:
