@@ -212,8 +212,12 @@ def preload(devices) -> concurrent.futures.Future:
     modules.append(importlib.import_module("mujoco.mjx.warp.ffi"))
     targets = list({str(d): d for d in map(wp.device_from_jax, devices)}.values())
     workers = max(1, min(len(modules), (os.cpu_count() or 2) // 2))
-    load = lambda: wp.force_load(  # noqa: E731
-        targets, [wp.get_module(m.__name__) for m in modules], max_workers=workers)
+
+    def load():
+        with callback_lock():  # no other thread's Warp host work meanwhile (`callback_lock`)
+            wp.force_load(targets, [wp.get_module(m.__name__) for m in modules],
+                          max_workers=workers)
+
     pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="warp-preload")
     future = pool.submit(load)
     pool.shutdown(wait=False)
