@@ -28,10 +28,10 @@ def timing(total: float, chunks: list[tuple[int, float]]) -> dict:
     XLA runs Warp's callbacks on the calling thread (docs/benchmarks.md). Finer, to say where a
     phase goes: `chunk_seconds` (each chunk call and its host copy), `parts` (the build, and m0's
     lowering, compiling or loading, the wait for the engine's preload with MuJoCo Warp, and
-    evaluation) and `waits` (how long the main thread waited
-    for each compile-ahead job, compiling it there with Warp on a GPU; and, as "preload", for
-    the engine's preload before a resumed run's first chunk). A step is timed by the
-    chunks after the first (whose call may compile); None with one chunk or none."""
+    evaluation) and `waits` (how long the main thread waited for each compile-ahead job,
+    compiling it there with Warp on a GPU; and, as "preload", for the engine's preload before a
+    resumed run's first chunk). A step is timed by the chunks after the first (whose call may
+    compile); None with one chunk or none."""
     steps = sum(n for n, _ in chunks)
     step = float(np.median([s / n for n, s in chunks[1:]])) if chunks[1:] else None
     return {"seconds": round(total, 1), "steps": steps, "step_seconds": step and round(step, 3),
