@@ -208,15 +208,15 @@ def preload(devices) -> concurrent.futures.Future:
     from mujoco.mjx import warp as mjx_warp
 
     package = mjx_warp.mujoco_warp.__name__ + "._src."
-    modules = [importlib.import_module(package + name) for name in FIXED_MODULES]
-    modules.append(importlib.import_module("mujoco.mjx.warp.ffi"))
+    names = [package + name for name in FIXED_MODULES] + ["mujoco.mjx.warp.ffi"]
+    for name in names:  # a module's kernels are registered with Warp when it is imported
+        importlib.import_module(name)
     targets = list({str(d): d for d in map(wp.device_from_jax, devices)}.values())
-    workers = max(1, min(len(modules), (os.cpu_count() or 2) // 2))
+    workers = max(1, min(len(names), (os.cpu_count() or 2) // 2))
 
     def load():
         with callback_lock():  # no other thread's Warp host work meanwhile (`callback_lock`)
-            wp.force_load(targets, [wp.get_module(m.__name__) for m in modules],
-                          max_workers=workers)
+            wp.force_load(targets, [wp.get_module(name) for name in names], max_workers=workers)
 
     pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="warp-preload")
     future = pool.submit(load)
