@@ -429,7 +429,8 @@ def test_preload_holds_the_named_modules_a_step_loads():
     variant of one. A new MJX that moves kernels into another module fails here. The step's
     modules of one kernel each (made from the model) still load at the step. The Crawler: its
     elliptic cones take solver paths the planar spaces do not."""
-    env = dict(os.environ, JAX_PLATFORMS=jax.default_backend())
+    backend = jax.default_backend()   # "gpu" names no platform: JAX_PLATFORMS takes "cuda"
+    env = dict(os.environ, JAX_PLATFORMS="cuda" if backend == "gpu" else backend)
     proc = subprocess.run([sys.executable, "-c", PRELOAD_CHECK], env=env, capture_output=True,
                           text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
