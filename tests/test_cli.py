@@ -9,7 +9,6 @@ import logging
 import shutil
 import sqlite3
 import sys
-import threading
 from pathlib import Path
 
 import jax
@@ -173,7 +172,7 @@ def test_resume_matches_an_uninterrupted_run(tmp_path, straight, monkeypatch):
     assert t["waits"]["preload"] >= 0, t
     first = json.loads((straight / "timing.json").read_text())["parts"]
     assert list(first) == ["build", "m0_lower", "m0_compile", "m0_preload_wait",
-                           "m0_ahead_wait", "m0_evaluate"], first
+                           "m0_evaluate"], first
     assert t["where"]["devices"] == jax.device_count() and t["where"]["physics"] == "jax", t
     assert json.loads((split / "config.json").read_text())["physics"] == "jax"  # auto on a CPU
     assert (straight / "metrics.csv").read_text() == (split / "metrics.csv").read_text()
@@ -395,57 +394,27 @@ def test_a_run_compiles_its_later_programs_ahead(tmp_path, caplog, confirm):
         assert by_thread[False, "jit(init)"] == 1, done  # m0's, on the main thread
 
 
-def test_with_warp_on_a_gpu_the_warmup_thread_compiles_until_the_first_call(caplog):
-    """`until_calls` (what a run sets with MuJoCo Warp on a GPU): before `before_calls` the
-    thread lowers and compiles; after it, the thread only lowers, `wait` compiles on the
-    calling thread, and the call finds the program compiled."""
+def test_with_warp_on_a_gpu_the_warmup_thread_only_lowers(caplog):
+    """`compiles` False (what a run sets with MuJoCo Warp on a GPU): the thread lowers, `wait`
+    compiles on the calling thread, and the call finds the program compiled."""
 
-    def warmup_early(x):  # programs of their own names, compiled nowhere else
+    def warmup_probe(x):  # a program of its own name, compiled nowhere else
         return jnp.sin(x) * 3.0 + 1.0
 
-    def warmup_late(x):
-        return jnp.cos(x) * 3.0 + 1.0
-
-    early, late, x = jax.jit(warmup_early), jax.jit(warmup_late), jnp.arange(7.0)
-    ahead = compile_ahead.Warmup(on=True, until_calls=True)
+    f, x = jax.jit(warmup_probe), jnp.arange(7.0)
+    ahead = compile_ahead.Warmup(on=True, compiles=False)
     jax.config.update("jax_log_compiles", True)
     try:
         with caplog.at_level(logging.WARNING, logger="jax"):
-            ahead.compile("early", lambda: early.lower(x))
-            ahead.wait("early")
-            ahead.before_calls()
-            ahead.compile("late", lambda: late.lower(x))
-            ahead.wait("late")
-            np.testing.assert_allclose(early(x), np.sin(np.arange(7.0)) * 3 + 1, rtol=1e-6)
-            np.testing.assert_allclose(late(x), np.cos(np.arange(7.0)) * 3 + 1, rtol=1e-6)
+            ahead.compile("probe", lambda: f.lower(x))
+            ahead.wait("probe")
+            np.testing.assert_allclose(f(x), np.sin(np.arange(7.0)) * 3 + 1, rtol=1e-6)
     finally:
         jax.config.update("jax_log_compiles", False)
         ahead.close()
-    names = ["jit(warmup_early)", "jit(warmup_late)"]
-    assert _by_thread(caplog.records, LOWERED) == {(True, n): 1 for n in names}
-    assert _by_thread(caplog.records, COMPILED) == {(True, names[0]): 1, (False, names[1]): 1}
-
-
-def test_before_calls_waits_for_the_compile_under_way():
-    """With `until_calls`, `before_calls` returns only after the thread's compile under way is
-    done: no compile may overlap the Warp call that follows it."""
-    began, release, order = threading.Event(), threading.Event(), []
-
-    class Slow:
-        def compile(self):
-            began.set()
-            release.wait(10)
-            order.append("compiled")
-
-    ahead = compile_ahead.Warmup(on=True, until_calls=True)
-    ahead.compile("slow", lambda: Slow())
-    ahead.start()
-    assert began.wait(10)
-    threading.Timer(0.3, release.set).start()
-    ahead.before_calls()
-    order.append("before_calls returned")
-    ahead.close()
-    assert order == ["compiled", "before_calls returned"]
+    name = "jit(warmup_probe)"
+    assert _by_thread(caplog.records, LOWERED) == {(True, name): 1}
+    assert _by_thread(caplog.records, COMPILED) == {(False, name): 1}
 
 
 def test_a_warmup_closed_on_an_error_lowers_nothing_more():
@@ -461,8 +430,8 @@ def test_a_warmup_closed_on_an_error_lowers_nothing_more():
     assert all(job.done() for job in jobs) and called == []
 
 
-@pytest.mark.parametrize("until_calls", [False, True])
-def test_a_failed_warmup_job_only_warns(until_calls):
+@pytest.mark.parametrize("compiles", [True, False])
+def test_a_failed_warmup_job_only_warns(compiles):
     """A program that fails to lower or compile ahead warns at `wait` (its call then does the
     work), whether the thread compiles it or `wait` does; `close` leaves the GIL's switch
     interval as it was."""
@@ -472,8 +441,7 @@ def test_a_failed_warmup_job_only_warns(until_calls):
             raise RuntimeError("no program")
 
     before = sys.getswitchinterval()
-    ahead = compile_ahead.Warmup(on=True, until_calls=until_calls)
-    ahead.before_calls()  # with `until_calls`: `wait` compiles
+    ahead = compile_ahead.Warmup(on=True, compiles=compiles)
     assert sys.getswitchinterval() == pytest.approx(compile_ahead.SWITCH_INTERVAL)
     ahead.compile("lower", lambda: 1 / 0)
     ahead.compile("compile", lambda: [Unlowerable()])

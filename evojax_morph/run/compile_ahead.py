@@ -7,15 +7,12 @@ costs the host seconds: tracing and lowering it, then compiling it (or, with a w
 cache, loading it). Meanwhile m0's evaluation, a step's worth of work, keeps the device busy and
 the host mostly idle. The run queues the later programs before m0's evaluation, for the shapes
 and placements their calls will have, and `Warmup` lowers them on one thread once m0's program
-is lowered (`start`), and compiles them there too, so that each call finds its program in JAX's
-caches (tests/test_cli.py checks by thread). They are the programs the calls would compile
-themselves: no result changes. `EVOJAX_MORPH_WARMUP=0` turns it off.
+is lowered (`start`), and compiles them there too unless MuJoCo Warp runs on a GPU, so that each
+call finds its program in JAX's caches (tests/test_cli.py checks by thread). They are the
+programs the calls would compile themselves: no result changes. `EVOJAX_MORPH_WARMUP=0` turns
+it off.
 
-With MuJoCo Warp on a GPU the thread compiles only until the run's first call (`Warmup(
-until_calls=True)`, `before_calls`): from then on it lowers, and `wait` compiles. So the first
-programs in its queue (a fresh machine's chunk, compiling 20 s on an H200) compile beside m0's
-program, and the rest, as before, on the main thread between calls. Why not compile on the
-thread during the calls: a Warp call captures a CUDA graph of XLA's
+Why not compile on the thread with Warp on a GPU: a Warp call captures a CUDA graph of XLA's
 stream whenever it meets new buffer addresses, and a compile that misses the persistent cache
 autotunes on that stream; one during the other breaks the capture (`Warp CUDA error 901`, then
 an error or an abort: `experiments/warp_thread_race.py compile`, retired, at git 7a9dc9b, died
@@ -26,7 +23,9 @@ running: XLA runs them inside the call that made them. Lowering launches no kern
 (`lower` mode: 3 of 3 runs, 21 to 23 lowerings during 30 calls). The MJX functions it runs that
 set Warp's default device for the whole process hold Warp's call lock
 (`evojax_morph.physics.warp.callback_lock`).
-docs/benchmarks.md, "Compiling on the second thread breaks Warp's graph capture".
+docs/benchmarks.md, "Compiling on the second thread breaks Warp's graph capture". Compiling on
+the thread only until m0's call (before any Warp call) gained nothing on an H200 (git e8cb251,
+reverted): the first chunk's compile ended 20.4 s after m0's, as late as on the main thread.
 
 With Warp on several GPUs the run turns the warmup off (`driver.execute`): runs on 2 H100s
 stopped in the greedy rollout after their steps, 4 of 4 with the warmup on. It was not the
@@ -72,16 +71,13 @@ def enabled() -> bool:
 class Warmup:
     """Jobs run ahead, by name: `compile(name, lower)` on the compiling thread, in the order
     given, once `start` is called; `run(name, fn)` on a thread of its own (a subprocess probe,
-    say); `wait(name)` before the call that needs the job's result. `until_calls`: the thread
-    compiles only until `before_calls`, then only lowers, and `wait` compiles what it lowered.
-    A job that fails only warns: its call then compiles the program itself, as without the
-    warmup."""
+    say); `wait(name)` before the call that needs the job's result. `compiles` False: the
+    thread only lowers, and `wait` compiles. A job that fails only warns: its call then
+    compiles the program itself, as without the warmup."""
 
-    def __init__(self, on: bool | None = None, until_calls: bool = False):
+    def __init__(self, on: bool | None = None, compiles: bool = True):
         self.on = enabled() if on is None else on
-        self.until_calls = until_calls
-        self._compiling = threading.Lock()  # held by the thread while it compiles
-        self._compiles = True  # until `before_calls`, with `until_calls`
+        self.compiles = compiles
         self._jobs: dict[str, Future] = {}
         self.waited: dict[str, float] = {}  # job name: seconds `wait` took (timing.json)
         self._lowering: set[str] = set()  # the names of `compile`'s jobs
@@ -108,26 +104,16 @@ class Warmup:
         """Lets the compiling thread begin (`wait` and `close` do too)."""
         self._go.set()
 
-    def before_calls(self) -> None:
-        """Called before the run's first call of a compiled program. With `until_calls`, the
-        thread compiles nothing more: this returns once the compile under way (if any) is done."""
-        if self.until_calls:
-            with self._compiling:
-                self._compiles = False
-
     def _lower(self, lower: Callable) -> list:
-        """The job's programs, each lowered, with whether the thread compiled it."""
         self._go.wait()
         if self._dropped:
             return []
         lowered = lower()
-        done = []
-        for one in lowered if isinstance(lowered, list) else [lowered]:
-            with self._compiling:
-                if self._compiles:
-                    one.compile()
-                done.append((one, self._compiles))
-        return done
+        lowered = lowered if isinstance(lowered, list) else [lowered]
+        if self.compiles:
+            for one in lowered:
+                one.compile()
+        return lowered
 
     def run(self, name: str, fn: Callable) -> None:
         """Calls `fn()` ahead, on a thread of its own."""
@@ -145,10 +131,9 @@ class Warmup:
         start = time.perf_counter()
         try:
             result = job.result()
-            if name in self._lowering:
-                for one, compiled in result:
-                    if not compiled:
-                        one.compile()
+            if name in self._lowering and not self.compiles:
+                for one in result:
+                    one.compile()
         except Exception as e:  # the call compiles it instead
             warnings.warn(f"warmup: {name} failed ahead ({type(e).__name__}: {e}); its call "
                           "does the work", RuntimeWarning, stacklevel=2)

@@ -58,12 +58,11 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     """Runs `cfg` in the directory `out` (checked writable), from its last checkpoint if
     `resume`, drawing best.gif at the end if `gif`; every process calls it, process 0 writes
     the files and prints. The programs called after m0's compile ahead (`compile_ahead`)."""
-    # Lowered on the compile-ahead thread while m0 compiles and runs, and compiled there; where
-    # the engine captures graphs on a GPU (MuJoCo Warp), which a compile's autotuning breaks,
-    # compiled there only until m0's call (`compile_ahead`); on several GPUs then not even
-    # lowered ahead (runs there hung).
+    # Lowered on the compile-ahead thread while m0 compiles and runs, and compiled there unless
+    # the engine captures graphs on a GPU (MuJoCo Warp), which a compile's autotuning breaks
+    # (`compile_ahead`); on several GPUs then not even lowered ahead (runs there hung).
     graphs = registered(cfg.physics).graph_capture and jax.default_backend() == "gpu"
-    ahead = Warmup(on=False if graphs and jax.device_count() > 1 else None, until_calls=graphs)
+    ahead = Warmup(on=False if graphs and jax.device_count() > 1 else None, compiles=not graphs)
     try:
         _execute(cfg, out, resume, gif, ahead)
     finally:
@@ -182,10 +181,9 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
 def _warm_up(run: Run, step, state, ahead: Warmup, clock: Clock):
     """The run's start: the restored `state` at `step` with metrics.csv's rows up to it, or
     (`step` None) m0 evaluated in every evolution, at step 0, its lowering, compiling (or
-    loading), the waits for the engine's preload (`Engine.preload`) and for a compile under way
-    ahead (`Warmup.before_calls`), and evaluation timed as the `clock`'s parts. Returns (step,
-    state, rows, the preload still to wait for before the first chunk call: a resumed run's,
-    else None)."""
+    loading), the wait for the engine's preload (`Engine.preload`) and evaluation timed as the
+    `clock`'s parts. Returns (step, state, rows, the preload still to wait for before the
+    first chunk call: a resumed run's, else None)."""
     preload = registered(run.cfg.physics).preload
     if step is not None:
         ahead.start()
@@ -208,8 +206,6 @@ def _warm_up(run: Run, step, state, ahead: Warmup, clock: Clock):
     if loading:
         loading.result()
         clock.part("m0_preload_wait")
-    ahead.before_calls()
-    clock.part("m0_ahead_wait")
     state = m0(run.key_init)
     first = to_host(state.first)
     clock.part("m0_evaluate")
@@ -243,7 +239,6 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: 
             waited = time.perf_counter()
             loading.result()
             clock.waits["preload"], loading = round(time.perf_counter() - waited, 2), None
-        ahead.before_calls()  # a resumed run's first call
         chunk_start = time.perf_counter()
         state, metrics = run.p.agent.chunk(state, n)
         if dispatch is None:  # when the call returns; to_host then waits for the device
