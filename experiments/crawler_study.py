@@ -86,11 +86,11 @@ def run_part(args, seeds: range, part: Path, deadline: float) -> dict | None:
     cfg = run_config(args.methods[0], setup_of(args))
     methods, p = study.methods_from(cfg, args.methods)
     s = study.make_study(methods, len(seeds))
-    preload = engines.registered(cfg.physics).preload  # Warp's fixed modules, while compiling
+    preload = engines.registered(cfg.physics).preload  # Warp's kernels, while compiling
     res = study.run_study(s, seed_keys(seeds), args.steps, args.chunk,
                           resume=part / "state.pkl", deadline=deadline,
                           log=lambda line: print(line, flush=True),
-                          preload=preload and (lambda: preload(jax.local_devices())))
+                          preload=preload and (lambda: preload(jax.local_devices(), p.space)))
     if res is None:
         return None
     print(f"seeds {seeds.start} to {seeds.stop - 1}: {s.evaluations} evaluations a call, "

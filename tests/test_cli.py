@@ -109,7 +109,7 @@ def test_physics_that_cannot_run_exits_with_2(monkeypatch, capsys, tmp_path):
 def straight(tmp_path_factory):
     """An uninterrupted 9-step run, seed 3 (checkpoints at steps 3, 6 and 9). Its confirm stage
     makes no fitness call: the predefined fitness is deterministic. Its engine has a preload
-    (as Warp's, `Engine.preload`), asked once for this process's devices."""
+    (as Warp's, `Engine.preload`), asked once for this process's devices and the run's space."""
     out = tmp_path_factory.mktemp("straight") / "run"
 
     def no_call(*_, **__):
@@ -120,16 +120,16 @@ def straight(tmp_path_factory):
         patch.setattr(confirming, "confirm", no_call)
         patch.setitem(engines._REGISTRY, "jax", engines.JAX._replace(preload=preloads(asked)))
         assert cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)]) == 0
-    assert asked == [jax.local_devices()]
+    assert asked == [(jax.local_devices(), "bad_walker")]
     return out
 
 
 def preloads(asked: list):
-    """An engine's preload (`Engine.preload`, as Warp's) that lists the devices it is asked
-    for and is done at once."""
+    """An engine's preload (`Engine.preload`, as Warp's) that lists the devices and the space
+    it is asked for and is done at once."""
 
-    def preload(devices):
-        asked.append(list(devices))
+    def preload(devices, space):
+        asked.append((list(devices), space.name))
         done = concurrent.futures.Future()
         done.set_result(None)
         return done
@@ -156,7 +156,7 @@ def test_resume_matches_an_uninterrupted_run(tmp_path, straight, monkeypatch):
     asked = []  # the resumed call has no m0: it waits for the preload before its first chunk
     monkeypatch.setitem(engines._REGISTRY, "jax", engines.JAX._replace(preload=preloads(asked)))
     assert cli.main(TINY + ["--steps", "9", "--out", str(split), "--resume"]) == 0
-    assert asked == [jax.local_devices()]
+    assert asked == [(jax.local_devices(), "bad_walker")]
     a, b = (json.loads((d / "summary.json").read_text()) for d in (straight, split))
     assert a == b
     # timing.json: this call's clock; the resumed call ran steps 4-9 in two chunks of 3

@@ -51,9 +51,9 @@ class Engine(NamedTuple):
     unreproducible: why a run stepping on it on a GPU is not reproducible from its seed whatever
       XLA does ("" where it is): the run then leaves XLA's deterministic ops off, which would
       only cost time (`cli.start_deterministic`).
-    preload: None, or preload(devices) -> a Future: starts compiling, on a thread, what the
-      engine's first call on those JAX devices would otherwise compile inside it; wait on the
-      Future before that call (`driver`, m0's evaluation).
+    preload: None, or preload(devices, space) -> a Future: starts compiling, on a thread, what
+      the engine's first call on those JAX devices, for bodies of `space`, would otherwise
+      compile inside it; wait on the Future before that call (`driver`, m0's evaluation).
     gpu_controllers: the controllers per body a run on a GPU trains by default
       (`Space.gpu_controllers`), spending the engine's speed on a fitness with less noise
       (docs/benchmarks.md, H100, 256 bodies of 50,000 PPO steps): 4 on the JAX engine (cv 0.23,
@@ -70,7 +70,7 @@ class Engine(NamedTuple):
     foreign: bool = False
     graph_capture: bool = False
     unreproducible: str = ""
-    preload: Callable[[Any], Any] | None = None
+    preload: Callable[[Any, SpaceLike], Any] | None = None
     gpu_controllers: int = 4
 
 
@@ -127,7 +127,7 @@ WARP = Engine(
     foreign=True,
     graph_capture=True,
     unreproducible="on a GPU MuJoCo Warp orders contacts by thread timing",
-    preload=lambda devices: _warp().preload(devices),
+    preload=lambda devices, space: _warp().preload(devices, space),
     gpu_controllers=8,
 )
 

@@ -187,7 +187,7 @@ def _warm_up(run: Run, step, state, ahead: Warmup, clock: Clock):
     preload = registered(run.cfg.physics).preload
     if step is not None:
         ahead.start()
-        loading = preload(batch_mesh().local_devices) if preload else None
+        loading = preload(batch_mesh().local_devices, run.p.space) if preload else None
         with open(run.out / "metrics.csv") as f:
             rows = [r for r in csv.DictReader(f) if int(r["step"]) <= step]
         if run.lead:
@@ -198,9 +198,9 @@ def _warm_up(run: Run, step, state, ahead: Warmup, clock: Clock):
     m0 = run.p.agent.init.lower(run.key_init)
     clock.part("m0_lower")
     # After m0's lowering, as the two would take turns at the GIL: the compile-ahead jobs, and
-    # the engine's fixed kernels (Warp's), which compile beside m0's program, not inside its call.
+    # the engine's kernels (Warp's), which compile beside m0's program, not inside its call.
     ahead.start()
-    loading = preload(batch_mesh().local_devices) if preload else None
+    loading = preload(batch_mesh().local_devices, run.p.space) if preload else None
     m0 = m0.compile()
     clock.part("m0_compile")
     if loading:
