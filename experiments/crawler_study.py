@@ -23,6 +23,9 @@ DATA/seeds_A-B/results.pkl (small, no agent state: it travels), and every call e
 the data file OUT/study_SPACE_TASK.json and its figure (.png: confirmed fitness against
 evaluations spent, a band over seeds per method; distinct bodies each run visited) from every
 finished part under DATA. Run the same command again until it says its seeds are done.
+DATA/held.jsonl, a line a session copied from the device tool's lease (the machine's start,
+installs and compiles included), makes the data file's `held_seconds`: the study's device time
+counted whole, beside `device_seconds` (the study's and confirmations' own calls).
 
   python -m experiments.crawler_study --physics warp   # GPU: experiments/README.md
   python -m experiments.crawler_study --toy --out /tmp/cs   # CPU smoke, about a minute
@@ -33,6 +36,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime
+import json
 import pickle
 import sys
 import time
@@ -115,6 +119,7 @@ def run_part(args, seeds: range, part: Path, deadline: float) -> dict | None:
                 "returned_draw": float(res["states"][m.name].best_fitness[i]),
                 "curve": sorted((e, c["mean"]) for b, c in mine for e in b["at"]),
                 "distinct_bodies": distinct_bodies(res["metrics"][m.name]["signature"])[i],
+                "draws": np.asarray(res["metrics"][m.name]["fitness"][:, i], np.float32),
                 "candidates": [(c["mean"], b["morph"], c["body"]) for b, c in mine]})
     device = jax.devices()[0]
     results = {"seeds": list(seeds), "runs": runs, "evaluations_per_call": s.evaluations,
@@ -223,6 +228,10 @@ def summary(parts: list[dict], best: dict, args) -> dict:
             "distinct_bodies": [r["distinct_bodies"] for r in mine],
         }
     study_seconds = sum(p["study_seconds"] for p in parts)
+    # The device tool's lease (machine start, installs, compiles and calls: the study's device
+    # time counted whole), a line a session, copied by hand from its replies.
+    held = args.data / "held.jsonl"
+    leases = [json.loads(line) for line in held.read_text().splitlines()] if held.exists() else []
     confirm_seconds = sum(p["confirm_seconds"] for p in parts) + best["seconds"]
     trains = get_fitness(args.fitness).trains_controllers  # each child's from its parent's
     return {
@@ -239,6 +248,8 @@ def summary(parts: list[dict], best: dict, args) -> dict:
         "device": parts[0]["device"],
         "device_seconds": round(study_seconds + confirm_seconds, 1),
         "study_seconds": round(study_seconds, 1), "confirm_seconds": round(confirm_seconds, 1),
+        "held_seconds": round(sum(lease["held_seconds"] for lease in leases), 1),
+        "leases": leases,
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "revision": revision(),
         "confirm_controllers": args.confirm_controllers,

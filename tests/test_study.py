@@ -2,6 +2,7 @@
 training): each method's seeds run as its agent runs them alone, in one fitness call a step."""
 
 import json
+import pickle
 from types import SimpleNamespace
 
 import jax
@@ -164,7 +165,11 @@ def test_every_run_and_body_confirms_with_keys_of_its_own():
 @pytest.mark.slow  # 65 s cold: the five agents on Bad Walker's table, confirmed
 def test_the_toy_study_leaves_every_method_its_seeds_at_equal_evaluations(tmp_path):
     """`python -m experiments.crawler_study --toy`: every method's seeds, each with its returned
-    body confirmed, equal evaluations, the curve and the distinct bodies; the figure."""
+    body confirmed, equal evaluations, the curve and the distinct bodies, every draw of its
+    steps in the part's results; the leases of held.jsonl summed; the figure."""
+    (tmp_path / "crawler_study").mkdir()
+    (tmp_path / "crawler_study" / "held.jsonl").write_text(
+        '{"held_seconds": 100.5}\n{"held_seconds": 20.25}\n')
     crawler_study.main(["--toy", "--out", str(tmp_path)])
     data = json.loads((tmp_path / "study_bad_walker_distance.json").read_text())
     assert set(data["runs"]) == set(METHODS) and data["seed_indices"] == [0, 1]
@@ -177,4 +182,7 @@ def test_the_toy_study_leaves_every_method_its_seeds_at_equal_evaluations(tmp_pa
         assert len(r["returned_mean"]) == len(r["returned_draws"]) == 2
         assert all(n >= 1 for n in r["returned_draws"])
     assert all("p_holm" in d for d in data["effects"]["differences"].values())
+    assert data["held_seconds"] == 120.8 and len(data["leases"]) == 2
+    part = pickle.loads((tmp_path / "crawler_study/seeds_0-1/results.pkl").read_bytes())
+    assert all(r["draws"].shape == (6, 4) for r in part["runs"])  # steps x N
     assert (tmp_path / "study_bad_walker_distance.png").stat().st_size > 0
