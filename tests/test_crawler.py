@@ -124,6 +124,20 @@ def test_the_budget_studys_bodies_are_those_its_data_name(space):
     assert limbs == [4, 4, 6, 8] and max(limbs) <= space.default_horizon
 
 
+def test_the_valleys_bodies_are_m0_and_every_body_one_mutation_away(space):
+    """experiments/crawler_valley.py's data file names m0 and each of its 6 one-limb children
+    (a limb on each torso site), the bodies the space's mutations make from m0; every child
+    scored below m0's lowest draw."""
+    from experiments import crawler_valley
+
+    data = json.loads(Path("docs/figures/crawler_valley.json").read_text())
+    near = crawler_valley.neighbourhood(space)
+    assert [b["body"] for b in data["bodies"]] == list(near)
+    assert [int(np.sum(m.active)) for _, m in near.values()] == [1] + [2] * 6
+    m0, *children = data["bodies"]
+    assert max(max(c["values"]) for c in children) < min(m0["values"])
+
+
 def test_size_classes_hold_the_bodies_of_shallow_chains(space):
     """The classes' templates hold chains of 1 and 2 limbs: a body fits a class exactly when
     its deepest limb is no deeper; a fitting body exports to the same unpadded MJCF from the
