@@ -252,7 +252,7 @@ def model_modules(space: SpaceLike) -> dict:
 
     mjwarp, template = mjx_forward.mjwarp, space.template
     contacts, rows = buffers(space)
-    batched = [n for n in space.plan.specialised_fields if n not in _NOT_IN_WARP] + ["geom_aabb"]
+    batched = [*_written(space), "geom_aabb"]  # per world in a run, as `world_model` sets
 
     def made(worlds: int) -> dict:
         found = {}
@@ -359,15 +359,15 @@ def world_model(space: SpaceLike, models: mjx.Model, envs: int, graph_mode=None)
     _require()
     template = space.template
     base = put_model(template, graph_mode)
-    written = space.plan.specialised_fields
-    flat, _ = flat_models(models, envs, written)  # the fields specialise writes, one per world
-    fields = {
-        n: jnp.asarray(getattr(flat, n), jnp.float32)
-        for n in written
-        if n not in _NOT_IN_WARP
-    }
+    flat, _ = flat_models(models, envs, space.plan.specialised_fields)  # one per world
+    fields = {n: jnp.asarray(getattr(flat, n), jnp.float32) for n in _written(space)}
     fields["geom_aabb"] = _capsule_aabb(template, fields["geom_size"])
     return base.replace(**fields)
+
+
+def _written(space: SpaceLike) -> list[str]:
+    """The fields `specialise` writes that Warp reads: a run holds one of each per world."""
+    return [n for n in space.plan.specialised_fields if n not in _NOT_IN_WARP]
 
 
 def put_model(mj_model: mujoco.MjModel, graph_mode=None) -> mjx.Model:
