@@ -11,7 +11,9 @@ the `run` command's rule (`bodylog.best_bodies`): the fitness is noisy, and a ru
 draw is the luckiest of many. Every run's returned bodies at every --curve-every evaluations
 (and at its end) are confirmed: --confirm-controllers controllers trained from scratch, with
 keys of their own (`confirm_keys`: the method and the seed folded in, so no two runs share a
-measurement); the best confirmed body of the whole study again with --best-controllers.
+measurement); the best confirmed body of the whole study again with --best-controllers, its
+controller of median return kept (DATA/best_controller) and one of its evaluation episodes
+drawn by MuJoCo's renderer where OpenGL works (OUT/study_SPACE_TASK_best.gif).
 Methods are compared on the returned bodies' confirmed means with Welch 95% intervals,
 Holm-corrected (`reproduce.compare_effects`).
 
@@ -50,7 +52,7 @@ import numpy as np
 import evojax_morph as em
 from evojax_morph.fitnesses import get_fitness
 from evojax_morph.physics import engines
-from evojax_morph.run import study
+from evojax_morph.run import saved_controllers, study, video
 from evojax_morph.run.checkpoints import write_atomic
 from evojax_morph.run.pipeline import agent_config, build
 from experiments.build_tables import revision
@@ -191,21 +193,46 @@ def distinct_bodies(signatures: np.ndarray) -> list[int]:
     return [len(np.unique(s, axis=0)) for s in per_seed]
 
 
-def confirm_best(space, fit_cfg, runs: list[dict], args) -> dict:
+def confirm_best(space, fit_cfg, runs: list[dict], args, video_stem: Path) -> dict:
     """The best confirmed body of the whole study (every part present), confirmed again by
-    --best-controllers with keys of their own (DATA/best.pkl, again if the best changed)."""
-    path = args.data / "best.pkl"
+    --best-controllers with keys of their own (DATA/best.pkl, again if the best changed). With
+    trained controllers, the one of median return is kept (DATA/best_controller) and one of its
+    evaluation episodes drawn (VIDEO_STEM.gif, `video.render_saved`): a typical gait of the
+    body, not its luckiest."""
+    path, kept = args.data / "best.pkl", args.data / "best_controller"
+    controllers = saved_controllers.has_controllers(fit_cfg)
     mean, morph, name, run = max(((*c, r) for r in runs for c in r["candidates"]),
                                  key=lambda x: x[0])
-    if path.exists() and (best := pickle.loads(path.read_bytes()))["entry"]["body"] == name:
+    if (path.exists() and (best := pickle.loads(path.read_bytes()))["entry"]["body"] == name
+            and (kept.exists() or not controllers)):
         return best
     start = time.time()
     key = jax.random.fold_in(jax.random.PRNGKey(CONFIRM_SEED), zlib.crc32(b"best"))
     (c,) = em.confirm(space, em.stack([morph]), key, fit_cfg, args.best_controllers)
     best = {"entry": {**entry(c), "method": run["method"], "seed": run["seed"]},
             "seconds": time.time() - start}
+    if controllers:
+        j = typical(c.values)
+        saved_controllers.save(kept, saved_controllers.SavedController(
+            space, fit_cfg, run["seed"], c.morph, jax.tree.map(lambda x: x[j], c.params),
+            float(c.values[j]), f"the study's best body, controller {j} of {len(c.values)}"))
+        shown = video.render_saved(saved_controllers.load(kept), video_stem, width=640,
+                                   height=360, mp4=False)
+        best["video"] = {"file": shown.paths[0].name, "controller": j,
+                         "controller_return": float(c.values[j]),
+                         "episode_return": shown.replay.episode_return,
+                         "episode_distance": float(shown.replay.distance[-1]),
+                         "drawn_by": shown.backend}
+        print(f"the best body's controller {j} of {len(c.values)} (return {c.values[j]:.1f}): "
+              f"{shown.replay.distance[-1]:+.2f} m in the drawn episode, by {shown.backend}",
+              flush=True)
     write_atomic(path, pickle.dumps(best))
     return best
+
+
+def typical(values: np.ndarray) -> int:
+    """The index of the median of `values` (the lower one of an even count)."""
+    return int(np.argsort(values, kind="stable")[(len(values) - 1) // 2])
 
 
 def summary(parts: list[dict], best: dict, args) -> dict:
@@ -255,7 +282,8 @@ def summary(parts: list[dict], best: dict, args) -> dict:
         "confirm_controllers": args.confirm_controllers,
         "confirm_keys": f"split(fold_in(fold_in(fold_in(PRNGKey({CONFIRM_SEED}), "
                         "crc32(method)), seed), body index in the run), controllers)",
-        "runs": runs, "best": best["entry"],  # the effects need 2 seeds a method
+        "runs": runs, "best": best["entry"], "best_video": best.get("video"),
+        # the effects need 2 seeds a method
         "effects": compare_effects(runs) if len(seeds) > 1 else None,
     }
 
@@ -329,9 +357,11 @@ def main(argv: list[str] | None = None) -> int:
     parts = [pickle.loads(f.read_bytes()) for f in sorted(args.data.glob("seeds_*/results.pkl"))]
     space = em.make_space(args.space)
     cfg = build(run_config(args.methods[0], setup_of(args))).fitness  # the confirmations'
-    best = confirm_best(space, cfg, [r for p in parts for r in p["runs"]], args)
+    name = f"study_{args.space}_{parts[0]['task']}"
+    best = confirm_best(space, cfg, [r for p in parts for r in p["runs"]], args,
+                        args.out / f"{name}_best")
     data = summary(parts, best, args)
-    draw(data, args.out, f"study_{args.space}_{data['task']}")
+    draw(data, args.out, name)
     print(f"the study's seeds {data['seed_indices']} are done", flush=True)
     return 0
 

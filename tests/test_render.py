@@ -13,6 +13,7 @@ import sys
 import tomllib
 from importlib import import_module
 from pathlib import Path
+from types import SimpleNamespace
 
 import chex
 import jax
@@ -28,6 +29,7 @@ from evojax_morph.run import bodylog, saved_controllers, video
 from evojax_morph.run import confirm_stage as confirming
 from evojax_morph.run.checkpoints import Damaged
 from evojax_morph.run.pipeline import Greedy, RunConfig, build
+from experiments import crawler_study
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_VIDEO = dict(backend="matplotlib", width=64, height=48, stride=50)
@@ -166,6 +168,48 @@ def test_confirmed_best_keeps_its_fresh_controllers(run_dir, tmp_path):
     assert space.canonical(again[0]) == top.body and again[3] == best_cfg
     for x, y in zip(jax.tree.leaves(again[2]), jax.tree.leaves(kept.params)):
         np.testing.assert_array_equal(x, y)
+
+
+def test_the_studys_best_body_keeps_its_typical_controller_and_its_video(run_dir, tmp_path,
+                                                                          monkeypatch):
+    """`crawler_study.confirm_best` on the PPO fitness: the best candidate of the runs is
+    confirmed, its controller of median return kept and drawn; the next call reuses both, and
+    confirms again when the controller is gone. `em.confirm` answers with fresh controllers and
+    made-up returns (test_confirmed_best_keeps_its_fresh_controllers confirms for real)."""
+    _, p, _, _ = run_dir
+    space, calls = p.space, []
+    fresh = jax.device_get(em.init_params(space, jax.random.split(jax.random.PRNGKey(1), 4),
+                                          p.fitness))
+    values = np.array([30.0, 10.0, 20.0, 50.0])  # the lower median, 20, is controller 2
+
+    def confirm(space_, morphs, key, cfg, controllers):
+        calls.append(controllers)
+        morph = jax.tree.map(lambda x: np.asarray(x[0]), morphs)
+        return [em.Confirmed(space.canonical(morph), morph, values, np.zeros(4, bool), fresh,
+                             np.ones(4), np.ones(4))]
+
+    monkeypatch.setattr(crawler_study.em, "confirm", confirm)
+    render = video.render_saved  # small and on matplotlib, whatever size the study asks
+    monkeypatch.setattr(crawler_study.video, "render_saved",
+                        lambda saved, stem, **_: render(saved, stem, mp4=False, **TINY_VIDEO))
+    runs = [{"method": "a2c", "seed": 3, "candidates": [(m, x, space.canonical(x)) for m, x in
+                                                        ((5.0, space.initial()),
+                                                         (9.0, space.optimum()))]}]
+    args = SimpleNamespace(data=tmp_path, best_controllers=4)
+    best = crawler_study.confirm_best(space, p.fitness, runs, args, tmp_path / "best")
+    assert calls == [4] and best["entry"]["body"] == space.canonical(space.optimum())
+    assert (best["entry"]["method"], best["entry"]["seed"], best["video"]["controller"]) == \
+        ("a2c", 3, 2)
+    kept = em.load_controller(tmp_path / "best_controller")
+    assert kept.value == 20.0 and kept.seed == 3
+    for saved, trained in zip(jax.tree.leaves(kept.params), jax.tree.leaves(fresh)):
+        np.testing.assert_array_equal(saved, trained[2])
+    assert best["video"]["file"] == "best.gif" and (tmp_path / "best.gif").stat().st_size > 0
+    assert crawler_study.confirm_best(space, p.fitness, runs, args, tmp_path / "best") == best
+    assert calls == [4]
+    shutil.rmtree(tmp_path / "best_controller")
+    crawler_study.confirm_best(space, p.fitness, runs, args, tmp_path / "best")
+    assert calls == [4, 4] and (tmp_path / "best_controller").exists()
 
 
 @pytest.mark.slow  # its replay program: a minute cold on 2 cores
