@@ -55,6 +55,7 @@ from evojax_morph.physics import engines
 from evojax_morph.run import saved_controllers, study, video
 from evojax_morph.run.checkpoints import write_atomic
 from evojax_morph.run.pipeline import agent_config, build
+from evojax_morph.tasks import gait_word
 from experiments.build_tables import revision
 from experiments.common import Setup, band, plt, run_config, save
 from experiments.reproduce import COMPARED, compare_effects
@@ -187,6 +188,12 @@ def entry(c) -> dict:
             "upright_whole": c.upright_whole}
 
 
+def gait(e: dict) -> str | None:
+    """"walks" or "moves" for a confirmed entry (`tasks.gait_word`); None without a gait (a
+    table's fitness keeps none)."""
+    return None if np.isnan(e["distance"]) else gait_word(e["distance"], e["upright_whole"])
+
+
 def distinct_bodies(signatures: np.ndarray) -> list[int]:
     """(steps, S, N, 2) children's signatures -> per seed, how many distinct bodies."""
     per_seed = np.moveaxis(signatures, 1, 0).reshape(signatures.shape[1], -1, 2)
@@ -247,6 +254,7 @@ def summary(parts: list[dict], best: dict, args) -> dict:
         runs[m] = {
             "agent": m, "seeds": len(mine), "agent_settings": mine[0]["agent_settings"],
             "returned": [r["returned"] for r in mine],
+            "returned_gait": [gait(r["returned"]) for r in mine],  # "walks" as tasks.py says
             "returned_mean": [r["returned_mean"] for r in mine],
             "returned_draws": [r["returned_draws"] for r in mine],
             "returned_draw": [r["returned_draw"] for r in mine],
@@ -282,7 +290,8 @@ def summary(parts: list[dict], best: dict, args) -> dict:
         "confirm_controllers": args.confirm_controllers,
         "confirm_keys": f"split(fold_in(fold_in(fold_in(PRNGKey({CONFIRM_SEED}), "
                         "crc32(method)), seed), body index in the run), controllers)",
-        "runs": runs, "best": best["entry"], "best_video": best.get("video"),
+        "runs": runs, "best": {**best["entry"], "gait": gait(best["entry"])},
+        "best_video": best.get("video"),
         # the effects need 2 seeds a method
         "effects": compare_effects(runs) if len(seeds) > 1 else None,
     }

@@ -162,6 +162,13 @@ def test_every_run_and_body_confirms_with_keys_of_its_own():
     assert len({tuple(np.asarray(k)) for ks in keys for k in ks}) == len(METHODS) * 10 * 3 * 16
 
 
+def test_a_returned_body_walks_as_tasks_defines_it():
+    entry = lambda d, u: {"distance": d, "upright_whole": u}  # noqa: E731
+    assert [crawler_study.gait(entry(*e)) for e in ((2.0, 0.9), (1.9, 1.0), (3.0, 0.8),
+                                                    (np.nan, 1.0))] == \
+        ["walks", "moves", "moves", None]
+
+
 @pytest.mark.slow  # 65 s cold: the five agents on Bad Walker's table, confirmed
 def test_the_toy_study_leaves_every_method_its_seeds_at_equal_evaluations(tmp_path):
     """`python -m experiments.crawler_study --toy`: every method's seeds, each with its returned
@@ -179,6 +186,7 @@ def test_the_toy_study_leaves_every_method_its_seeds_at_equal_evaluations(tmp_pa
         assert r["curve"][-1]["evaluations"] == data["evaluations_per_run"] == 4 * 6
         assert all(len(p["confirmed"]) == 2 for p in r["curve"])
         assert {"distance", "upright", "upright_whole"} <= set(r["returned"][0])
+        assert r["returned_gait"] == [None, None]  # Bad Walker's distance table keeps no gait
         assert len(r["returned_mean"]) == len(r["returned_draws"]) == 2
         assert all(n >= 1 for n in r["returned_draws"])
     assert all("p_holm" in d for d in data["effects"]["differences"].values())
