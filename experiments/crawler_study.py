@@ -204,8 +204,8 @@ def confirm_best(space, fit_cfg, runs: list[dict], args, video_stem: Path) -> di
     """The best confirmed body of the whole study (every part present), confirmed again by
     --best-controllers with keys of their own (DATA/best.pkl, again if the best changed). With
     trained controllers, the one of median return is kept (DATA/best_controller) and one of its
-    evaluation episodes drawn (VIDEO_STEM.gif, `video.render_saved`): a typical gait of the
-    body, not its luckiest."""
+    evaluation episodes drawn (VIDEO_STEM.gif, `video.render_saved`, whose replay steps MJX's
+    JAX engine whatever engine trained it): a typical gait of the body, not its luckiest."""
     path, kept = args.data / "best.pkl", args.data / "best_controller"
     controllers = saved_controllers.has_controllers(fit_cfg)
     mean, morph, name, run = max(((*c, r) for r in runs for c in r["candidates"]),
@@ -229,6 +229,7 @@ def confirm_best(space, fit_cfg, runs: list[dict], args, video_stem: Path) -> di
                          "controller_return": float(c.values[j]),
                          "episode_return": shown.replay.episode_return,
                          "episode_distance": float(shown.replay.distance[-1]),
+                         "episode_physics": "jax",  # `video.replay` steps MJX's JAX engine
                          "drawn_by": shown.backend}
         print(f"the best body's controller {j} of {len(c.values)} (return {c.values[j]:.1f}): "
               f"{shown.replay.distance[-1]:+.2f} m in the drawn episode, by {shown.backend}",
