@@ -368,6 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     space = em.make_space(args.space)
     cfg = build(run_config(args.methods[0], setup_of(args))).fitness  # the confirmations'
     name = f"study_{args.space}_{parts[0]['task']}"
+    args.out.mkdir(parents=True, exist_ok=True)  # the best body's video goes there first
     best = confirm_best(space, cfg, [r for p in parts for r in p["runs"]], args,
                         args.out / f"{name}_best")
     data = summary(parts, best, args)
