@@ -310,6 +310,9 @@ def draw(data: dict, out: Path, name: str) -> None:
              color=f"C{i}")
         ax_d.plot(np.full(len(r["distinct_bodies"]), i), r["distinct_bodies"], "o",
                   color=f"C{i}", alpha=0.6)
+    task = em.make_task(data["task"])
+    if standing := task.healthy_reward * task.episode_length:  # the walking task's floor
+        ax_c.axhline(standing, color="gray", ls=":", label="standing the whole episode")
     ax_c.set(xlabel="evaluations spent per run",
              ylabel=f"returned body, mean of {data['confirm_controllers']} fresh controllers",
              title=f"{data['space'].title()}, {data['task']} task, {budget}: median over "
