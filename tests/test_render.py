@@ -95,6 +95,19 @@ def test_saved_controllers_round_trip(run_dir):
         saved_controllers.body_dir(out, "step 5")
 
 
+def test_a_controller_saved_on_a_gpu_reads_here():
+    """The Crawler study's kept controller was saved on an H200 (Orbax records its device,
+    "cuda:0"); it reads on this machine's device, its digests checked, the body the one its
+    best.pkl names."""
+    kept = ROOT / "docs/figures/crawler_study"
+    assert "cuda:0" in (kept / "best_controller/params/_sharding").read_text()
+    saved = em.load_controller(kept / "best_controller")
+    best = crawler_study.pickle.loads((kept / "best.pkl").read_bytes())
+    assert saved.space.name == "crawler" and saved.label.startswith("the study's best body")
+    assert saved.space.canonical(saved.morph) == best["entry"]["body"]
+    assert all(x.devices() == {jax.local_devices()[0]} for x in jax.tree.leaves(saved.params))
+
+
 def test_a_damaged_controller_is_an_error(run_dir, tmp_path, capsys):
     """Each data file of a saved controller (its arrays' and its metadata's), one at a time,
     with bytes inverted in place, cut to half, then deleted: `em.load_controller` either raises

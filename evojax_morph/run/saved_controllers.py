@@ -88,7 +88,11 @@ def load(path: Path) -> SavedController:
         space = make_space(meta["space"])
         fitness = FitnessConfig.from_dict(meta["fitness"])
         init, _ = ppo.make_train(space, fitness.task, fitness.ppo)
-        abstract = jax.eval_shape(init, jax.random.PRNGKey(0))
+        # Placed on this process's first device: a controller saved on a GPU reads on a CPU
+        # (without a placement, Orbax restores to the saving device, "cuda:0").
+        here = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+        abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=here),
+                                jax.eval_shape(init, jax.random.PRNGKey(0)))
         restore = ocp.args.Composite(params=ocp.args.StandardRestore(abstract))
         with read_error(name):
             params = ckptr.restore(path, args=restore)["params"]
