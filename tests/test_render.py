@@ -29,7 +29,7 @@ from evojax_morph.run import bodylog, saved_controllers, video
 from evojax_morph.run import confirm_stage as confirming
 from evojax_morph.run.checkpoints import Damaged
 from evojax_morph.run.pipeline import Greedy, RunConfig, build
-from experiments import crawler_study
+from experiments import controller_engines, crawler_study
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_VIDEO = dict(backend="matplotlib", width=64, height=48, stride=50)
@@ -246,6 +246,19 @@ def test_replay_is_the_fitness_evaluation_episode(run_dir):
     assert not np.allclose(replays[0].qpos[-1], replays[1].qpos[-1])  # two controllers
     with pytest.raises(ValueError, match="out of range"):
         em.replay(saved, controller=2)
+
+
+@pytest.mark.slow  # its evaluation program and the replay's: about a minute cold on 2 cores
+def test_the_engines_check_scores_the_replays_episodes(run_dir):
+    """`experiments.controller_engines` scores controller 0 in the episodes `replay` draws from
+    the same reset keys (split(key)), on the engine it is asked for."""
+    out, _, _, _ = run_dir
+    saved = em.load_controller(saved_controllers.body_dir(out, "best"))
+    key = jax.random.PRNGKey(5)
+    got = controller_engines.scores(saved, "jax", 2, key)
+    replays = [em.replay(saved, k, controller=0).episode_return for k in jax.random.split(key, 2)]
+    np.testing.assert_allclose(got["returns"], replays, rtol=1e-4, atol=1e-2)
+    assert got["engine"] == "jax" and got["mean"] == pytest.approx(np.mean(replays), abs=1e-2)
 
 
 def test_replay_compiles_ahead(run_dir, monkeypatch, caplog):
