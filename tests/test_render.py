@@ -7,6 +7,7 @@ import dataclasses
 import json
 import logging
 import os
+import pickle
 import shutil
 import subprocess
 import sys
@@ -102,7 +103,7 @@ def test_a_controller_saved_on_a_gpu_reads_here():
     kept = ROOT / "docs/figures/crawler_study"
     assert "cuda:0" in (kept / "best_controller/params/_sharding").read_text()
     saved = em.load_controller(kept / "best_controller")
-    best = crawler_study.pickle.loads((kept / "best.pkl").read_bytes())
+    best = pickle.loads((kept / "best.pkl").read_bytes())
     assert saved.space.name == "crawler" and saved.label.startswith("the study's best body")
     assert saved.space.canonical(saved.morph) == best["entry"]["body"]
     assert all(x.devices() == {jax.local_devices()[0]} for x in jax.tree.leaves(saved.params))
