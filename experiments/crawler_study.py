@@ -205,7 +205,8 @@ def confirm_best(space, fit_cfg, runs: list[dict], args, video_stem: Path) -> di
     --best-controllers with keys of their own (DATA/best.pkl, again if the best changed). With
     trained controllers, the one of median return is kept (DATA/best_controller) and one of its
     evaluation episodes drawn (VIDEO_STEM.gif, `video.render_saved`, whose replay steps MJX's
-    JAX engine whatever engine trained it): a typical gait of the body, not its luckiest."""
+    JAX engine whatever engine trained it): a controller typical of the body, not its luckiest;
+    the drawn episode is one of that controller's, not its mean."""
     path, kept = args.data / "best.pkl", args.data / "best_controller"
     controllers = saved_controllers.has_controllers(fit_cfg)
     mean, morph, name, run = max(((*c, r) for r in runs for c in r["candidates"]),
