@@ -48,6 +48,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.stats
 
 import evojax_morph as em
 from evojax_morph.fitnesses import get_fitness
@@ -239,14 +240,34 @@ def confirm_best(space, fit_cfg, runs: list[dict], args, video_stem: Path) -> di
     return best
 
 
+def picks(runs: dict, start: str) -> dict | None:
+    """Does a run's pick predict its body's own fitness? The returned body's mean over its
+    draws in the run (controllers inherited, the rule's measure) against its confirmed mean
+    (controllers from scratch), Spearman's rank correlation over the runs whose returned body
+    is not the start body `start` (a method that stays there repeats one body); None below 3
+    such runs."""
+    pairs = [(mean, draws, e["mean"]) for r in runs.values()
+             for mean, draws, e in zip(r["returned_mean"], r["returned_draws"], r["returned"])
+             if e["body"] != start]
+    if len(pairs) < 3:
+        return None
+    in_run, draws, confirmed = np.asarray(pairs, float).T
+    rho = scipy.stats.spearmanr(in_run, confirmed)
+    return {"runs": len(pairs), "one_draw": int((draws == 1).sum()),
+            "in_run_mean": [float(in_run.min()), float(in_run.max())],
+            "confirmed": [float(confirmed.min()), float(confirmed.max())],
+            "spearman": float(rho.statistic), "p": float(rho.pvalue)}
+
+
 def typical(values: np.ndarray) -> int:
     """The index of the median of `values` (the lower one of an even count)."""
     return int(np.argsort(values, kind="stable")[(len(values) - 1) // 2])
 
 
-def summary(parts: list[dict], best: dict, args) -> dict:
+def summary(parts: list[dict], best: dict, args, start: str) -> dict:
     """The data file from every part's results: settings, cost, each run's confirmed returned
-    bodies along the run, the effects (Holm) and the best body."""
+    bodies along the run, the effects (Holm), how well the runs' picks predict their bodies
+    (`picks`; `start`: the start body's name) and the best body."""
     n, seeds = args.num_envs, sorted(s for p in parts for s in p["seeds"])
     runs = {}
     for m in args.methods:
@@ -292,7 +313,8 @@ def summary(parts: list[dict], best: dict, args) -> dict:
         "confirm_controllers": args.confirm_controllers,
         "confirm_keys": f"split(fold_in(fold_in(fold_in(PRNGKey({CONFIRM_SEED}), "
                         "crc32(method)), seed), body index in the run), controllers)",
-        "runs": runs, "best": {**best["entry"], "gait": gait(best["entry"])},
+        "runs": runs, "picks": picks(runs, start),
+        "best": {**best["entry"], "gait": gait(best["entry"])},
         "best_video": best.get("video"),
         # the effects need 2 seeds a method
         "effects": compare_effects(runs) if len(seeds) > 1 else None,
@@ -301,8 +323,10 @@ def summary(parts: list[dict], best: dict, args) -> dict:
 
 def draw(data: dict, out: Path, name: str) -> None:
     """Confirmed fitness of the returned body against evaluations spent (median over seeds,
-    quartile band, per method); distinct bodies each run visited."""
-    fig, (ax_c, ax_d) = plt.subplots(1, 2, figsize=(11, 4), gridspec_kw={"width_ratios": [3, 2]})
+    quartile band, per method); distinct bodies each run visited; each run's returned body,
+    its mean in the run against its confirmed mean (`picks`)."""
+    fig, (ax_c, ax_d, ax_p) = plt.subplots(1, 3, figsize=(15, 4),
+                                           gridspec_kw={"width_ratios": [3, 2, 2]})
     steps = data["fitness"]["train_steps"]
     budget = f"{steps:,} PPO steps" if steps else f"the {data['fitness']['kind']} fitness"
     for i, (m, r) in enumerate(data["runs"].items()):
@@ -311,6 +335,8 @@ def draw(data: dict, out: Path, name: str) -> None:
              color=f"C{i}")
         ax_d.plot(np.full(len(r["distinct_bodies"]), i), r["distinct_bodies"], "o",
                   color=f"C{i}", alpha=0.6)
+        ax_p.plot(r["returned_mean"], [e["mean"] for e in r["returned"]], "o", color=f"C{i}",
+                  alpha=0.6, label=m)
     task = em.make_task(data["task"])
     if standing := task.healthy_reward * task.episode_length:  # the walking task's floor
         ax_c.axhline(standing, color="gray", ls=":", label="standing the whole episode")
@@ -322,6 +348,10 @@ def draw(data: dict, out: Path, name: str) -> None:
     ax_d.set_xticks(range(len(data["runs"])), list(data["runs"]), rotation=20, fontsize=8)
     ax_d.set(ylabel="distinct bodies evaluated in a run",
              title=f"{data['evaluations_per_run']:,} evaluations a run")
+    rho = f"Spearman {data['picks']['spearman']:.2f}, {data['picks']['runs']} runs off m0" \
+        if data["picks"] else "under 3 runs off m0"
+    ax_p.set(xlabel="returned body: its mean in the run (inherited)",
+             ylabel="its confirmed mean (from scratch)", title=f"the picks: {rho}")
     save(fig, out, name, data)
 
 
@@ -375,7 +405,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)  # the best body's video goes there first
     best = confirm_best(space, cfg, [r for p in parts for r in p["runs"]], args,
                         args.out / f"{name}_best")
-    data = summary(parts, best, args)
+    data = summary(parts, best, args, space.canonical(space.initial()))
     draw(data, args.out, name)
     print(f"the study's seeds {data['seed_indices']} are done", flush=True)
     return 0

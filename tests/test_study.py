@@ -169,6 +169,25 @@ def test_a_returned_body_walks_as_tasks_defines_it():
         ["walks", "moves", "moves", None]
 
 
+def test_the_picks_are_ranked_against_their_confirmations_off_the_start():
+    """`crawler_study.picks` on hand-made runs: the four bodies off m0 rank backwards (in the
+    run 200 < 300 < 400 < 500, confirmed 180 > 150 > 120 > 90): Spearman -1; the run that
+    stays at m0 is left out, whatever its numbers; with 2 runs off m0, None."""
+    def run(*returned):  # (mean in the run, its draws, body, confirmed mean) a seed
+        mean, draws, body, confirmed = zip(*returned)
+        return {"returned_mean": mean, "returned_draws": draws,
+                "returned": [{"body": b, "mean": c} for b, c in zip(body, confirmed)]}
+
+    runs = {"a": run((200, 1, "b1", 180), (300, 2, "b2", 150)),
+            "b": run((400, 1, "b3", 120), (500, 1, "b4", 90)),
+            "c": run((100, 40, "m0", 1000), (600, 30, "m0", 0))}
+    got = crawler_study.picks(runs, "m0")
+    assert (got["runs"], got["one_draw"], got["in_run_mean"], got["confirmed"]) == \
+        (4, 3, [200, 500], [90, 180])
+    assert got["spearman"] == pytest.approx(-1)
+    assert crawler_study.picks({"a": runs["a"], "c": runs["c"]}, "m0") is None
+
+
 @pytest.mark.slow  # 65 s cold: the five agents on Bad Walker's table, confirmed
 def test_the_toy_study_leaves_every_method_its_seeds_at_equal_evaluations(tmp_path):
     """`python -m experiments.crawler_study --toy`: every method's seeds, each with its returned
@@ -190,6 +209,7 @@ def test_the_toy_study_leaves_every_method_its_seeds_at_equal_evaluations(tmp_pa
         assert len(r["returned_mean"]) == len(r["returned_draws"]) == 2
         assert all(n >= 1 for n in r["returned_draws"])
     assert all("p_holm" in d for d in data["effects"]["differences"].values())
+    assert data["picks"] is None or -1 <= data["picks"]["spearman"] <= 1
     assert data["held_seconds"] == 120.8 and len(data["leases"]) == 2
     part = pickle.loads((tmp_path / "crawler_study/seeds_0-1/results.pkl").read_bytes())
     assert all(r["draws"].shape == (6, 4) for r in part["runs"])  # steps x N
