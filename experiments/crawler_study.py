@@ -336,7 +336,7 @@ def draw(data: dict, out: Path, name: str) -> None:
         ax_d.plot(np.full(len(r["distinct_bodies"]), i), r["distinct_bodies"], "o",
                   color=f"C{i}", alpha=0.6)
         ax_p.plot(r["returned_mean"], [e["mean"] for e in r["returned"]], "o", color=f"C{i}",
-                  alpha=0.6, label=m)
+                  alpha=0.6)
     task = em.make_task(data["task"])
     if standing := task.healthy_reward * task.episode_length:  # the walking task's floor
         ax_c.axhline(standing, color="gray", ls=":", label="standing the whole episode")
