@@ -8,10 +8,10 @@ evaluated in ONE fitness call of methods x seeds x N bodies. A run's returned bo
 of the highest mean fitness over the run's evaluations so far (m0's at its start among them;
 ties to the body evaluated more often, then to the one seen first: `study.best_mean_bodies`),
 the first of the `run` command's ranking (`bodylog.best_bodies`; `run` then confirms its first
-8 on a GPU from scratch and reports the best of them, the study only its first): the fitness is noisy,
-and a run's best single draw is the luckiest of many. Every run's returned bodies at every --curve-every evaluations
-(and at its end) are confirmed: --confirm-controllers controllers trained from scratch, with
-keys of their own (`confirm_keys`: the method and the seed folded in, so no two runs share a
+8 on a GPU from scratch and reports the best of them, the study only its first): the fitness
+is noisy, and a run's best single draw is the luckiest of many. Every run's returned bodies at
+every --curve-every evaluations (and at its end) are confirmed: --confirm-controllers
+controllers trained from scratch, with keys of their own (`confirm_keys`: the method and the seed folded in, so no two runs share a
 measurement); the best confirmed body of the whole study again with --best-controllers, its
 controller of median return kept (DATA/best_controller) and one of its evaluation episodes
 drawn by MuJoCo's renderer where OpenGL works (OUT/study_SPACE_TASK_best.gif).
