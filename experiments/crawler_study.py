@@ -13,9 +13,9 @@ is noisy, and a run's best single draw is the luckiest of many. Every run's retu
 every --curve-every evaluations (and at its end) are confirmed: --confirm-controllers
 controllers trained from scratch, with keys of their own (`confirm_keys`: the method and the
 seed folded in, so no two runs share a measurement); the best confirmed body of the whole
-study again with --best-controllers, its
-controller of median return kept (DATA/best_controller) and one of its evaluation episodes
-drawn by MuJoCo's renderer where OpenGL works (OUT/study_SPACE_TASK_best.gif).
+study again with --best-controllers, its controller of median return kept
+(DATA/best_controller) and one of its evaluation episodes drawn by MuJoCo's renderer where
+OpenGL works (OUT/study_SPACE_TASK_best.gif).
 Methods are compared on the returned bodies' confirmed means with Welch 95% intervals,
 Holm-corrected (`reproduce.compare_effects`).
 
