@@ -2,9 +2,9 @@
 policy (as the PPO fitness scores a trained controller, `ppo.make_evaluate_learners`) run for
 --episodes evaluation episodes on each engine from the same reset keys; the engines part after
 a few contact steps, so their returns are compared as distributions, not episode by episode.
-Appends a line a machine to --out.
+Appends a line a run to --out.
 
-  python -m experiments.controller_engines   # the Crawler study's best body, CPU: about 2 min
+  python -m experiments.controller_engines   # the Crawler study's best body, CPU: 2 to 3 min
 """
 
 from __future__ import annotations

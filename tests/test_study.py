@@ -209,7 +209,10 @@ def test_the_toy_study_leaves_every_method_its_seeds_at_equal_evaluations(tmp_pa
         assert len(r["returned_mean"]) == len(r["returned_draws"]) == 2
         assert all(n >= 1 for n in r["returned_draws"])
     assert all("p_holm" in d for d in data["effects"]["differences"].values())
-    assert data["picks"] is None or -1 <= data["picks"]["spearman"] <= 1
+    m0 = em.make_space("bad_walker")
+    off = sum(e["body"] != m0.canonical(m0.initial()) for r in data["runs"].values()
+              for e in r["returned"])  # the returned bodies the picks rank
+    assert off >= 3 and data["picks"]["runs"] == off and -1 <= data["picks"]["spearman"] <= 1
     assert data["held_seconds"] == 120.8 and len(data["leases"]) == 2
     part = pickle.loads((tmp_path / "crawler_study/seeds_0-1/results.pkl").read_bytes())
     assert all(r["draws"].shape == (6, 4) for r in part["runs"])  # steps x N
