@@ -86,6 +86,12 @@ def test_the_comparison_draws_each_agent_and_each_difference_with_its_interval(t
     d = differences["a2c - random"]
     assert d["difference"] == pytest.approx(2.0) and d["df"] == pytest.approx(3.9385, abs=1e-4)
     assert d["ci95"] == pytest.approx([2 - 6.4516, 2 + 6.4516], abs=1e-3)
+    # together over the 5 pairs (Bonferroni): each at 99%, t_{.995, 3.9385} = 4.6536
+    assert d["ci95_simultaneous"] == pytest.approx([2 - 10.7469, 2 + 10.7469], abs=1e-3)
+    # Holm: the i-th smallest of the 5 p values times 5 - i, never below the one before
+    ps = sorted(e["p"] for e in differences.values())
+    holm = np.maximum.accumulate([min(1.0, (5 - i) * p) for i, p in enumerate(ps)])
+    assert sorted(e["p_holm"] for e in differences.values()) == pytest.approx(holm)
 
 
 def test_an_unroll_is_rebuilt_from_its_recorded_mutations():
