@@ -16,8 +16,8 @@ seed folded in, so no two runs share a measurement); the best confirmed body of 
 study again with --best-controllers, its controller of median return kept
 (DATA/best_controller) and one of its evaluation episodes drawn by MuJoCo's renderer where
 OpenGL works (OUT/study_SPACE_TASK_best.gif).
-Methods are compared on the returned bodies' confirmed means with Welch 95% intervals,
-Holm-corrected (`reproduce.compare_effects`).
+Methods are compared on the returned bodies' confirmed means with Welch 95% intervals, Holm's
+p and intervals that hold together over all the differences (`reproduce.compare_effects`).
 
 A call runs the part of the seeds [--first-seed, --first-seed + --seeds) (seed s starts from
 fold_in(PRNGKey(0), s) in any part) and resumes where it stopped: the agents' states after
