@@ -132,3 +132,14 @@ def episode_returns(reward: np.ndarray, horizon: int) -> np.ndarray:
     episodes = reward.shape[0] // horizon
     r = reward[: episodes * horizon].reshape(episodes, horizon, *reward.shape[1:])
     return r.sum(1).mean(-1)
+
+
+def holm(effects: dict) -> None:
+    """Adds each comparison's Holm-adjusted p ("p_holm") and whether it holds at 5% after the
+    correction ("significant_holm"), over every comparison of `effects` at once."""
+    order = sorted(effects, key=lambda pair: effects[pair]["p"])
+    running = 0.0
+    for i, pair in enumerate(order):
+        running = max(running, min(1.0, (len(order) - i) * effects[pair]["p"]))
+        effects[pair]["p_holm"] = running
+        effects[pair]["significant_holm"] = running < 0.05

@@ -53,7 +53,7 @@ from evojax_morph.fitnesses import FitnessConfig
 from evojax_morph.fitnesses import table as table_fitness
 from evojax_morph.run.pipeline import RunConfig, agent_config, build
 from evojax_morph.spaces import make_space
-from experiments.common import band, save
+from experiments.common import band, holm, save
 
 RL = ("ddqn", "dqn", "qrdqn", "a2c")
 RULES = ("draw", "confirmed", "confirmed_early")  # what a run returns: the module's docstring
@@ -244,17 +244,6 @@ def effect(a, b, true, table_means, rng) -> dict:
             "significant": bool(lo > 0 or hi < 0), "ci_with_table": [float(tlo), float(thi)],
             "significant_with_table": bool(tlo > 0 or thi < 0), "p_beats": float(beats),
             "p": float(p)}
-
-
-def holm(effects: dict) -> None:
-    """Adds each comparison's Holm-adjusted p ("p_holm") and whether it holds at 5% after the
-    correction ("significant_holm"), over every comparison of `effects` at once."""
-    order = sorted(effects, key=lambda pair: effects[pair]["p"])
-    running = 0.0
-    for i, pair in enumerate(order):
-        running = max(running, min(1.0, (len(order) - i) * effects[pair]["p"]))
-        effects[pair]["p_holm"] = running
-        effects[pair]["significant_holm"] = running < 0.05
 
 
 def pairs(methods) -> list[tuple[str, str]]:

@@ -45,7 +45,7 @@ from evojax_morph.run import plots
 from evojax_morph.run.confirm import t_interval
 from evojax_morph.run.pipeline import NO_OP, agent_config, build, make_greedy_rollout
 from experiments.build_tables import revision
-from experiments.common import Setup, band, episode_returns, plt, run_agent, run_config, save
+from experiments.common import Setup, band, episode_returns, holm, plt, run_agent, run_config, save
 
 TRAIN_STEPS = 5_000  # the source's PPO budget per evaluation (it names 3,000 and 5,000)
 
@@ -240,13 +240,10 @@ def compare_effects(runs: dict[str, dict]) -> dict:
                 "difference": float(np.mean(a) - np.mean(b)), "ci95": [float(ci.low),
                                                                        float(ci.high)],
                 "df": float(test.df), "p": float(test.pvalue)}
-    order = sorted(differences, key=lambda pair: differences[pair]["p"])
-    running = 0.0  # Holm's step-down adjustment over every difference at once
-    for i, pair in enumerate(order):
-        running = max(running, min(1.0, (len(order) - i) * differences[pair]["p"]))
-        ci = tests[pair].confidence_interval(1 - 0.05 / len(order))
-        differences[pair] |= {"p_holm": running, "significant_holm": running < 0.05,
-                              "ci95_simultaneous": [float(ci.low), float(ci.high)]}
+    holm(differences)
+    for pair, test in tests.items():
+        ci = test.confidence_interval(1 - 0.05 / len(tests))
+        differences[pair]["ci95_simultaneous"] = [float(ci.low), float(ci.high)]
     return {"agents": agents, "differences": differences,
             "interval": "agents: 95% t over seeds; differences: 95% Welch t over seeds, "
                         "p Holm-adjusted over all of them (p_holm), and intervals that hold "
