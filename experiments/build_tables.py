@@ -11,6 +11,8 @@ metadata).
 
   python -m experiments.build_tables --space bad_walker --seeds 32              # GPU: the table
   python -m experiments.build_tables --space length_walker --seeds 32
+  python -m experiments.build_tables --space crawler_near --seeds 16 --task walk \\
+      --physics warp --budget 480 --out docs/landscapes/crawler_near_walk.npz  # rerun until done
   python -m experiments.build_tables --space bad_walker --seeds 2 --train-steps 320 \\
       --out /tmp/bw.npz                                                         # CPU check
 
@@ -152,9 +154,14 @@ def build(args) -> tables.Table:
     key = jax.random.PRNGKey(args.seed)
     # one shape for every call, a full build or a rest
     batch = min(args.batch, len(names) * max(args.seeds, args.deep_seeds if args.deep_top else 0))
+    last = 0.0  # the last batch's seconds, for --budget
     for n, start in enumerate(range(0, len(jobs), batch)):
         if args.max_batches is not None and n >= args.max_batches:
             print(f"stopped after {n} batches (--max-batches); rerun to continue")
+            break
+        if args.budget is not None and n and time.time() - args.began + last > args.budget:
+            print(f"stopped after {n} batches: another would pass --budget {args.budget:g} s; "
+                  "rerun to continue")
             break
         part = jobs[start : start + batch]
         padded = part + [part[0]] * (batch - len(part))
@@ -165,7 +172,7 @@ def build(args) -> tables.Table:
         res = em.evaluate(space, em.stack([bodies[k] for k, _ in padded]), keys, cfg)
         fitness, diverged, distance, upright = jax.device_get(
             (res.fitness, res.diverged, res.distance, res.upright))
-        seconds = time.time() - t
+        seconds = last = time.time() - t
         for i, (k, s) in enumerate(part):
             table.fitness[k, s], table.diverged[k, s] = fitness[i], diverged[i]
             table.distance[k, s], table.upright[k, s] = distance[i], upright[i]
@@ -215,6 +222,9 @@ def main(argv: list[str] | None = None) -> int:
     add("--out", default=None, help="the table (.npz); default: the packaged "
         "evojax_morph/fitnesses/tables/SPACE.npz")
     add("--max-batches", type=int, default=None, help="stop after this many batches")
+    add("--budget", type=float, default=None,
+        help="seconds: start no batch that would end past them (by the last batch's time), so "
+        "a device call ends in time; rerun to continue")
     add("--deep-top", type=int, default=0,
         help="give the N bodies of the highest means --deep-seeds results (0: none)")
     add("--deep-seeds", type=int, default=256, help="results of each deep row")
@@ -233,6 +243,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--deep-seeds must exceed --seeds")
     args.out = args.out or str(tables.default_path(args.space))
     args.argv = argv
+    args.began = time.time()  # --budget counts from here
     full_precision()  # as the run command
     build(args)
     return 0

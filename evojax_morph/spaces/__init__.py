@@ -8,11 +8,11 @@ from __future__ import annotations
 from evojax_morph.spaces.bad_walker import BadWalker
 from evojax_morph.spaces.base import Space
 from evojax_morph.spaces.constructor import Constructor
-from evojax_morph.spaces.crawler import Crawler
+from evojax_morph.spaces.crawler import Crawler, CrawlerNear
 from evojax_morph.spaces.length_walker import LengthWalker
 
 _REGISTRY: dict[str, type[Space]] = {
-    cls.name: cls for cls in (BadWalker, Constructor, Crawler, LengthWalker)
+    cls.name: cls for cls in (BadWalker, Constructor, Crawler, CrawlerNear, LengthWalker)
 }
 
 
@@ -34,5 +34,5 @@ def make_space(name: str, **kwargs) -> Space:
     return get_space(name)(**kwargs)
 
 
-__all__ = ["BadWalker", "Constructor", "Crawler", "LengthWalker", "Space", "get_space",
-           "list_spaces", "make_space"]
+__all__ = ["BadWalker", "Constructor", "Crawler", "CrawlerNear", "LengthWalker", "Space",
+           "get_space", "list_spaces", "make_space"]

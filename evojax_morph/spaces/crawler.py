@@ -220,6 +220,43 @@ class Crawler(Space):
         return layout.replace(root_pos=jnp.zeros(3).at[2].set(height))
 
 
+def distance_from_m0(m: Morphology) -> jax.Array:
+    """() int32: the fewest mutations that grow `m` from m0: per limb one to add it, one per
+    length step from the middle length, one if its hinge is not its slot's default. No mutation
+    but `remove` raises this by more than one, and `remove` lowers it, so no shorter path exists."""
+    length = jnp.argmin(jnp.abs(m.attrs[1:, :1] - jnp.asarray(LENGTHS)), axis=1)
+    flipped = m.attrs[1:, 1] != DEFAULT_AXIS
+    cost = 1 + jnp.abs(length - 1) + flipped
+    return jnp.sum(jnp.where(m.active[1:], cost, 0)).astype(jnp.int32)
+
+
+class CrawlerNear(Crawler):
+    """The Crawler's bodies within `REACH` (4) mutations of m0: 1,137 bodies, few enough for a
+    landscape table (`experiments.build_tables --space crawler_near`).
+
+    The Crawler's physics, mutations and m0; a mutation is valid only where the child stays
+    within reach (`distance_from_m0`), so every body an agent meets is one of the 1,137
+    (`reachable_counts(4)`: 1, 6, 39, 194 and 897 at 0 to 4 mutations).
+    """
+
+    name = "crawler_near"
+    REACH = 4
+
+    def action_mask(self, m: Morphology) -> jax.Array:
+        mask = super().action_mask(m)
+        distance = distance_from_m0(m)
+        length = jnp.argmin(jnp.abs(m.attrs[:, :1] - jnp.asarray(LENGTHS)), axis=1)
+        # the change of the distance per (node, mutation): + 1 to grow, a step away from the
+        # middle length or off the default hinge, - 1 back; remove and noop never leave
+        off_default = m.attrs[:, 1] != np.r_[0, DEFAULT_AXIS]
+        change = jnp.zeros((MAX_NODES, self.num_mutations), jnp.int32)
+        change = change.at[:, : NUM_SITES].set(1).at[:, EXTEND].set(1)
+        change = change.at[:, SHORTER].set(jnp.where(length <= 1, 1, -1))
+        change = change.at[:, LONGER].set(jnp.where(length >= 1, 1, -1))
+        change = change.at[:, FLIP].set(jnp.where(off_default, -1, 1))
+        return mask & (distance + change <= self.REACH)
+
+
 def reachable_counts(horizon: int) -> list[int]:
     """Distinct Crawler bodies first reached after 0, 1, ..., `horizon` mutations from m0.
 
