@@ -171,6 +171,78 @@ def test_regularized_evolution_ages_out_its_oldest():
     np.testing.assert_array_equal(np.asarray(pop.evo.fitness)[4:], draws[1])  # step 2's children
 
 
+def test_regularized_evolution_first_population_of_walks():
+    """first="walks": until the population is full, the parents are random walks of 0 to
+    walk - 1 mutations from m0, so the first P children lie at most `walk` mutations away (a
+    no-op is a mutation), some beyond one; once full, the parents are tournament winners
+    again (S = P: the fittest)."""
+    n, p = 16, 32
+    env = on_table("random", n).env
+    cfg = baselines.RegularizedEvolutionConfig(p, p, first="walks", walk=3)
+    agent = agents.from_policy(env, baselines.make_regularized_evolution(env, cfg))
+    bodies, depths = env.space.enumerate_bodies()
+    depth = {env.space.canonical(m): d for m, d in zip(bodies, depths)}
+    state, far = agent.init(jax.random.PRNGKey(2)), []
+    for _ in range(3):
+        state, m = agent.chunk(state, 1)
+        kids = jax.device_get(m["bodies"]["morph"])
+        far.append([depth[env.space.canonical(jax.tree.map(lambda x, i=i: x[0, i], kids))]
+                    for i in range(n)])
+    assert max(far[0]) <= 1 and 2 <= max(far[1]) <= 3
+    members = np.asarray(state.learner.evo.fitness)
+    np.testing.assert_array_equal(state.evo.fitness, np.full(n, members.max()))
+
+
+def test_predictor_stores_every_evaluation_and_scores_valid_children():
+    """The predictor's data set holds each step's children and their draws, in order; its
+    scores rank only valid actions (masked ones at the floor)."""
+    n = 4
+    env = on_table("random", n).env
+    agent = agents.make_agent("predictor", env, learning_starts=8, candidates=4, ensemble=2)
+    state = agent.init(jax.random.PRNGKey(0))
+    state, m = agent.chunk(state, 3)
+    data = state.learner.data
+    assert int(data.size) == 3 * n
+    np.testing.assert_array_equal(np.asarray(data.fitness)[: 3 * n],
+                                  np.asarray(m["fitness"]).reshape(-1))
+    obs = env.observe(state.evo)
+    scores = np.asarray(agent.scores(state.learner, obs))
+    mask = np.asarray(obs.mask)
+    assert (scores[~mask] <= -1e8).all() and np.isfinite(scores[mask]).all()
+    assert (scores[mask] > -1e8).all()
+
+
+@pytest.mark.learning
+def test_predictor_learns_the_table():
+    """After 60 steps of 8 evaluations on the Bad Walker table, the ensemble's mean prediction
+    ranks the table's 90 bodies by their true means (Spearman), where the same networks
+    untrained do not."""
+    from scipy.stats import spearmanr
+
+    from evojax_morph.agents import predictor
+
+    env = on_table("random", 8).env
+    cfg = predictor.PredictorConfig(learning_starts=32)
+    agent = agents.from_policy(env, predictor.make_policy(env, cfg))
+    table, _ = tb.load(env.space, em.FitnessConfig(kind="table"))
+    _, predict = predictor.make_predictor(env.space, cfg)
+    bodies = jax.tree.map(jnp.asarray, table.bodies)
+
+    def run(key):
+        start = agent.init(key)
+        state, _ = agent.chunk(start, 60)
+        return predict(start.learner.params, bodies).mean(0), predict(
+            state.learner.params, bodies).mean(0)
+
+    before, after = jax.jit(jax.vmap(run))(jax.vmap(jax.random.PRNGKey)(jnp.arange(12)))
+    rho = lambda x: np.array([spearmanr(row, table.mean())[0] for row in np.asarray(x)])  # noqa: E731
+    # Measured on 2 CPU cores (jax 0.10.2), seeds 100-111: trained mean 0.63 (min 0.34, every
+    # seed above its untrained networks), untrained mean 0.00 (-0.36 to 0.34). The bounds
+    # below sit 5 standard errors of the trained mean (0.04) under it.
+    assert rho(after).mean() >= 0.4 and abs(rho(before).mean()) <= 0.2, (rho(after), rho(before))
+    assert (rho(after) > rho(before)).mean() >= 10 / 12
+
+
 def lucky_draw_table(path):
     """A Bad Walker table (32 results a body) where every body but one has a lucky draw: one
     result in 32 is 800 above its mean (0 to 100), the others a little below; the best body,

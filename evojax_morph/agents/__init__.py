@@ -18,7 +18,7 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
-from evojax_morph.agents import a2c, baselines, dqn, qrdqn
+from evojax_morph.agents import a2c, baselines, dqn, predictor, qrdqn
 from evojax_morph.agents.base import Agent, AgentState, Policy, RunOptions, Transition, from_policy
 from evojax_morph.mdp import EvolutionEnv
 
@@ -42,6 +42,7 @@ _REGISTRY: dict[str, AgentKind] = {k.name: k for k in (
     AgentKind("evolution", None, baselines.make_evolution, baselines.check_evolution),
     AgentKind("regularized_evolution", baselines.RegularizedEvolutionConfig,
               baselines.make_regularized_evolution, baselines.check_regularized_evolution),
+    AgentKind("predictor", predictor.PredictorConfig, predictor.make_policy, predictor.check),
 )}
 
 

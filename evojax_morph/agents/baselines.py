@@ -27,6 +27,7 @@ from flax import struct
 
 from evojax_morph.agents.base import Policy, RunOptions
 from evojax_morph.mdp import REMEASURE, EvolutionEnv, EvoState, random_valid_actions
+from evojax_morph.morphology import Morphology, tree_select
 
 
 def _random_act(learner, keys, obs, step):
@@ -119,6 +120,10 @@ class RegularizedEvolutionConfig:
 
     population: int = 0  # P, members; 0: 2 N
     tournament: int = 0  # S, members sampled per tournament; 0: P // 8
+    # the first population: "walks", P random walks of 1 to `walk` mutations from m0 (the NAS
+    # benchmarks' random first population); "m0", children of m0 and of the first members
+    first: str = "m0"
+    walk: int = 5  # "walks": the longest walk
 
     def sizes(self, num_envs: int) -> tuple[int, int]:
         """(P, S) for N = `num_envs` children a step; raises ValueError where they cannot work."""
@@ -132,6 +137,9 @@ class RegularizedEvolutionConfig:
         if not 1 <= s <= p:
             raise ValueError(f"regularized_evolution: the tournament must sample between 1 "
                              f"and the population ({p}) members, got {s}")
+        if self.first not in ("m0", "walks") or self.walk < 1:
+            raise ValueError(f"regularized_evolution: first must be 'm0' or 'walks' and walk "
+                             f"at least 1, got {self.first!r}, {self.walk}")
         return p, s
 
     @classmethod
@@ -139,6 +147,25 @@ class RegularizedEvolutionConfig:
         """P and S of the run's --population and --tournament, defaults resolved; raises
         ValueError before anything compiles where they cannot work."""
         return cls(*cls(run.population, run.tournament).sizes(env.num_envs))
+
+
+def random_walks(space, key: jax.Array, n: int, longest: int) -> Morphology:
+    """(n, ...) bodies, each a walk of 0 to `longest` uniformly random valid mutations from m0
+    (its length uniform too)."""
+    key_len, key_walk = jax.random.split(key)
+    lengths = jax.random.randint(key_len, (n,), 0, longest + 1)
+
+    def walk(key, length):
+        def step(m, x):
+            i, key = x
+            return tree_select(i < length, space.random_mutation(key, m), m), None
+
+        m0 = space.initial()
+        m, _ = jax.lax.scan(lambda m, x: step(m, x), m0,
+                            (jnp.arange(longest), jax.random.split(key, longest)))
+        return m
+
+    return jax.vmap(walk)(jax.random.split(key_walk, n), lengths)
 
 
 def check_regularized_evolution(num_envs: int, population: int, tournament: int) -> None:
@@ -160,7 +187,8 @@ def make_regularized_evolution(env: EvolutionEnv,
     children, oldest first; until then tournaments sample the members there are. The first
     step mutates m0's N evaluations."""
     n = env.num_envs
-    p, s = (cfg or RegularizedEvolutionConfig()).sizes(n)
+    cfg = cfg or RegularizedEvolutionConfig()
+    p, s = cfg.sizes(n)
 
     def init(keys, obs):
         del keys
@@ -173,18 +201,24 @@ def make_regularized_evolution(env: EvolutionEnv,
         return Population(evo, zero, zero)
 
     def next_evo(env, pop, keys, parents, children, first, done):
-        del env, parents, first, done
+        del parents, done
         # AGE: the children replace the oldest members
         slots = (pop.next + jnp.arange(n)) % p
         evo = jax.tree.map(lambda m, c: m.at[slots].set(c), pop.evo, children)
         pop = Population(evo, jnp.minimum(pop.size + n, p), (pop.next + n) % p)
         # TOURNAMENTS: N samples of S distinct members; the fittest of each is a parent
-        u = jax.random.uniform(keys[0], (n, p))
+        key_sample, key_walk = jax.random.split(keys[0])
+        u = jax.random.uniform(key_sample, (n, p))
         member = jnp.arange(p) < pop.size
         _, sample = jax.lax.top_k(jnp.where(member, u, -1.0), s)  # (N, S), members first
         fit = jnp.where(member[sample], evo.fitness[sample], -jnp.inf)
         winners = jnp.take_along_axis(sample, jnp.argmax(fit, 1)[:, None], 1)[:, 0]
-        return pop, _take(evo, winners).replace(steps=jnp.zeros(n, jnp.int32))
+        parents = _take(evo, winners).replace(steps=jnp.zeros(n, jnp.int32))
+        if cfg.first == "walks":  # until P members: walks of 0 to walk - 1, mutated once more
+            walks = random_walks(env.space, key_walk, n, cfg.walk - 1)
+            parents = tree_select(jnp.broadcast_to(pop.size < p, (n,)),
+                                  first.replace(morph=walks), parents)
+        return pop, parents
 
     return Policy(keys=(0, 1, 0, 1), init=init, act=_random_act, learn=_no_learning,
                   scores=None, next_evo=next_evo)
