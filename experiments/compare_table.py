@@ -55,7 +55,7 @@ from evojax_morph.run.pipeline import RunConfig, agent_config, build
 from evojax_morph.spaces import make_space
 from experiments.common import band, holm, save
 
-RL = ("ddqn", "dqn", "qrdqn", "a2c")
+RL = ("ddqn", "dqn", "qrdqn", "a2c", "predictor")  # the learned designs
 RULES = ("draw", "confirmed", "confirmed_early")  # what a run returns: the module's docstring
 BASELINES = ("regularized_evolution", "evolution", "random")
 BOOT = 10_000  # bootstrap resamples
@@ -76,8 +76,18 @@ class Settings:
     seeds: int = 10
     confirm: int = 8  # the confirmed rule: bodies re-evaluated at the end of a run
     confirm_draws: int = 32  # results drawn from the table for each
-    agent_settings: str = ""  # JSON: {method: {field: value}} over its config (tuning)
+    # {method: {field: value}} over its config: JSON, or a frozen settings file
+    # (experiments/frozen_settings.json: its "settings", tuned on its "tuning_table")
+    agent_settings: str = ""
     tag: str = ""  # appended to the data file's name (a tuning variant's)
+
+
+def agent_overrides(s: Settings) -> tuple[dict, dict]:
+    """({method: {field: value}}, what the file says of how they were chosen ({} for JSON))."""
+    if s.agent_settings.endswith(".json"):
+        frozen = json.loads(Path(s.agent_settings).read_text())
+        return frozen["settings"], {k: v for k, v in frozen.items() if k != "settings"}
+    return json.loads(s.agent_settings or "{}"), {}
 
 
 def rows_fn(sigs: np.ndarray):
@@ -140,7 +150,7 @@ def run_method(method: str, k: int, s: Settings, true: np.ndarray, sigs, table) 
                     explore_steps=s.explore_steps, learning_starts=s.learning_starts)
     env = build(dataclasses.replace(cfg, agent="random")).env
     agent_cfg = agent_config(cfg, env)
-    overrides = json.loads(s.agent_settings or "{}").get(method, {})
+    overrides = agent_overrides(s)[0].get(method, {})
     agent_cfg = dataclasses.replace(agent_cfg, **overrides) if overrides else agent_cfg
     p = build(cfg, agent_cfg=agent_cfg)
     rows = rows_fn(sigs)
@@ -372,6 +382,7 @@ def main():
                    table=s.table))), "meta": table.meta, "best": float(true.max()),
                    "best_body": table.names[int(true.argmax())]},
                "device": f"{jax.default_backend()}: {jax.devices()[0].device_kind}",
+               "tuning": agent_overrides(s)[1],  # the tuning table and protocol, if frozen
                "results": {}}
     if path.exists():
         old = json.loads(path.read_text())
