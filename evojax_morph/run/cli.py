@@ -263,7 +263,9 @@ def add_agent_flags(group, defaults: RunConfig) -> None:
         default=defaults.agent,
         choices=agents.list_agents(),
         help="who chooses the mutations: ddqn (Double-DQN), dqn (plain DQN), qrdqn "
-        "(quantile-regression DQN), a2c (actor-critic), or the baselines "
+        "(quantile-regression DQN), a2c (actor-critic), predictor (a GNN ensemble that "
+        "learns body -> fitness from every evaluation picks each parent's mutation; parents "
+        "as regularized_evolution's), or the baselines "
         "random (random mutation walks), evolution ((mu + lambda), its survivors evaluated "
         "again every step and ranked by their mean) and regularized_evolution (aging "
         "evolution: tournaments pick the parents, each child replaces the oldest member)",
@@ -274,9 +276,11 @@ def add_agent_flags(group, defaults: RunConfig) -> None:
     add("--learning-starts", type=int, default=defaults.learning_starts,
         help="ddqn, dqn, qrdqn: transitions stored before learning")
     add("--population", type=int, default=defaults.population,
-        help="regularized_evolution: members, at least --num-envs (0: 2 x --num-envs)")
+        help="regularized_evolution, predictor: members, at least --num-envs (0: 2 x "
+        "--num-envs)")
     add("--tournament", type=int, default=defaults.tournament,
-        help="regularized_evolution: members sampled per tournament, 1 to --population "
+        help="regularized_evolution, predictor: members sampled per tournament, 1 to "
+        "--population "
         "(0: an eighth of the population)")
 
 
