@@ -11,11 +11,11 @@ the first of the `run` command's ranking (`bodylog.best_bodies`; `run` then conf
 8 on a GPU from scratch and reports the best of them, the study only its first): the fitness
 is noisy, and a run's best single draw is the luckiest of many. Every run's returned bodies at
 every --curve-every evaluations (and at its end) are confirmed: --confirm-controllers
-controllers trained from scratch, with keys of their own (`confirm_keys`: the method and the
-seed folded in, so no two runs share a measurement); the best confirmed body of the whole
-study again with --best-controllers, its controller of median return kept
-(DATA/best_controller) and one of its evaluation episodes drawn by MuJoCo's renderer where
-OpenGL works (OUT/study_SPACE_TASK_best.gif).
+controllers trained from scratch, with keys of their own (`confirm_keys`: the method, the seed
+and the body's index folded in, then split a controller, so no two runs share a measurement);
+the best confirmed body of the whole study again with --best-controllers, its controller of
+median return kept (DATA/best_controller) and one of its evaluation episodes drawn by MuJoCo's
+renderer where OpenGL works (OUT/study_SPACE_TASK_best.gif).
 Methods are compared on the returned bodies' confirmed means with Welch 95% intervals, Holm's
 p and intervals that hold together over all the differences (`reproduce.compare_effects`).
 
@@ -64,7 +64,7 @@ from experiments.common import Setup, band, plt, run_config, save
 from experiments.reproduce import COMPARED, compare_effects
 
 CONFIRM_SEED = 63  # every confirming key descends from it (`confirm_keys`)
-STUDY_SEED = 0  # seed s of every method starts from split(PRNGKey(0), S)[s], as run_agent's
+STUDY_SEED = 0  # seed s of every method starts from fold_in(PRNGKey(0), s) (`seed_keys`)
 
 
 def confirm_keys(method: str, seed: int, body: int, controllers: int) -> jax.Array:
