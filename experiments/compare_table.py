@@ -353,6 +353,44 @@ def table_lines(summary: dict) -> list[str]:
     return lines
 
 
+def freeze(data: Path, out: Path) -> dict:
+    """The frozen settings: per method, of its tuning runs in `data` (compare_table files of
+    one table, seeds and budget, a setting each: --tag tune_NAME), the setting of the lowest
+    mean regret under the confirmed rule; written to `out` with every candidate's regret and
+    the table they were tuned on, for --agent-settings of the held-out runs."""
+    runs = [json.loads(f.read_text()) for f in sorted(data.glob("compare_table_*tune_*.json"))]
+    tables = {(r["settings"]["space"], r["settings"]["table"], r["settings"]["seeds"],
+               r["evaluations_per_run"]) for r in runs}
+    if len(tables) != 1:
+        raise SystemExit(f"--freeze: the tuning runs must share a table, seeds and budget: "
+                         f"{sorted(tables)}")
+    candidates: dict[str, list] = {}
+    for r in runs:
+        for k, by in r["stats"].items():
+            if not k.isdigit():
+                continue
+            for method, st in by["confirmed"].items():
+                if "-" in method:
+                    continue
+                overrides = agent_overrides(Settings(**r["settings"]))[0].get(method, {})
+                candidates.setdefault(method, []).append(
+                    {"tag": r["settings"]["tag"], "overrides": overrides, "k": int(k),
+                     "mean_regret": st["mean_regret"], "tied": st["indistinguishable"]})
+    space, table, seeds, evaluations = tables.pop()
+    frozen = {
+        "tuning_table": f"{space}" + (f" ({table})" if table else " (packaged)"),
+        "protocol": f"each method's settings (its defaults and the others listed) x {seeds} "
+                    f"seeds x {evaluations} evaluations on the tuning table; the lowest mean "
+                    "regret of the confirmed rule kept, frozen before any held-out run",
+        "date": time.strftime("%Y-%m-%d", time.gmtime()),
+        "candidates": candidates,
+        "settings": {m: min(c, key=lambda x: x["mean_regret"][0])["overrides"]
+                     for m, c in candidates.items()},
+    }
+    out.write_text(json.dumps(frozen, indent=1) + "\n")
+    return frozen
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -366,7 +404,14 @@ def main():
     parser.add_argument("--swap-in", default="",
                         help="a tuning variant's data file (--tag): print the statistics with "
                         "its methods' runs in place of this file's, at the K both hold; no run")
+    parser.add_argument("--freeze", default="",
+                        help="a folder of tuning runs (--tag tune_NAME): write each method's "
+                        "best setting to --out (a .json for --agent-settings); no run")
     args = parser.parse_args()
+    if args.freeze:
+        frozen = freeze(Path(args.freeze), Path(args.out))
+        print(json.dumps(frozen["settings"], indent=1))
+        return
     s = Settings(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Settings)})
     space = make_space(s.space)
     table, sigs = table_fitness.load(space, FitnessConfig(kind="table", table=s.table))

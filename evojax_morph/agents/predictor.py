@@ -52,7 +52,7 @@ class PredictorConfig:
     learning_starts: int = 64  # evaluations stored before the predictor chooses
     population: int = 0  # regularized evolution's P (0: 2 N)
     tournament: int = 0  # its S (0: P // 8)
-    first: str = "m0"  # its first population ("m0" or "walks")
+    first: str = "walks"  # its first population ("walks" or "m0")
 
     def parents(self) -> baselines.RegularizedEvolutionConfig:
         """The parent selection's settings."""
