@@ -50,6 +50,26 @@ def test_a_million_bodies_within_the_horizon():
     assert counts == by_polynomial(10) and sum(counts) == 2_754_725
 
 
+def test_crawler_near_keeps_the_bodies_within_reach(space):
+    """`distance_from_m0` is each body's breadth-first depth (the 240 bodies within 3
+    mutations), and `crawler_near` allows exactly the Crawler's mutations whose child lies
+    within 4: 1,137 bodies in all, as `reachable_counts` counts them."""
+    bodies, depths = space.enumerate_bodies(max_depth=3)
+    batch = em.stack(bodies)
+    np.testing.assert_array_equal(jax.vmap(cr.distance_from_m0)(batch), depths)
+    near = em.make_space("crawler_near")
+    nm = space.num_mutations
+
+    def allowed(m):
+        kids = jax.vmap(lambda a: space.mutate(m, a // nm, a % nm))(jnp.arange(space.num_actions))
+        within = jax.vmap(cr.distance_from_m0)(kids) <= near.REACH
+        return space.action_mask(m).reshape(-1) & within, near.action_mask(m).reshape(-1)
+
+    want, got = jax.jit(jax.vmap(allowed))(batch)
+    np.testing.assert_array_equal(got, want)
+    assert sum(cr.reachable_counts(near.REACH)) == 1137
+
+
 def test_mutations(space):
     m = space.mutate(space.initial(), 0, 3)  # a limb at the front right: slot 10
     assert space.format(m).splitlines()[1] == "└── 10: limb @ front_right (length=0.3, axis=0)"

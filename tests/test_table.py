@@ -2,6 +2,7 @@
 one trace, resumable builds and `run --fitness table`. Tables here are synthetic or of the
 predefined fitness (cheap); the real ones hold PPO results built on a GPU."""
 
+import dataclasses
 import json
 import re
 
@@ -314,3 +315,31 @@ def test_deep_rows_are_built_and_drawn_from(walker, tmp_path, monkeypatch):
         assert np.bitwise_or.reduce(sums) == expect
     with pytest.raises(ValueError, match="holds 3 results"):
         real(space, em.stack([bodies[0]]), jax.random.PRNGKey(3), config(tmp_path / "t.npz", 4))
+
+
+def test_freeze_keeps_each_methods_lowest_regret_on_one_table(tmp_path):
+    """`compare_table --freeze`: of a folder of tuning runs, each method's setting of the lowest
+    confirmed mean regret, with every candidate and the table; runs of two tables refused."""
+    from experiments import compare_table
+
+    def run(tag, settings, regrets, space="bad_walker"):
+        s = dataclasses.asdict(compare_table.Settings(space=space, seeds=20, tag=tag,
+                                                      agent_settings=json.dumps(settings)))
+        stats = {"1": {"confirmed": {m: {"mean_regret": [r, r - 1, r + 1], "indistinguishable": 3}
+                                     for m, r in regrets.items()}}}
+        stats["1"]["confirmed"]["a-b"] = {"diff": 0.0}  # an effect, not a method
+        (tmp_path / f"compare_table_{space}_{tag}.json").write_text(json.dumps(
+            {"settings": s, "evaluations_per_run": 10_000, "stats": stats}))
+
+    run("tune_a", {"regularized_evolution": {"population": 32}}, {"regularized_evolution": 9.0})
+    run("tune_b", {"regularized_evolution": {"population": 64}, "ddqn": {"epsilon_steps": 9}},
+        {"regularized_evolution": 4.0, "ddqn": 7.0})
+    run("tune_c", {}, {"ddqn": 8.0})
+    frozen = compare_table.freeze(tmp_path, tmp_path / "frozen.json")
+    assert frozen["settings"] == {"regularized_evolution": {"population": 64},
+                                  "ddqn": {"epsilon_steps": 9}}
+    assert len(frozen["candidates"]["ddqn"]) == 2 and frozen["tuning_table"].startswith("bad")
+    assert json.loads((tmp_path / "frozen.json").read_text()) == frozen
+    run("tune_d", {}, {"ddqn": 1.0}, space="length_walker")
+    with pytest.raises(SystemExit, match="share a table"):
+        compare_table.freeze(tmp_path, tmp_path / "frozen.json")
