@@ -150,23 +150,22 @@ class RegularizedEvolutionConfig:
         return cls(*cls(run.population, run.tournament).sizes(env.num_envs))
 
 
-def random_walks(space, key: jax.Array, n: int, longest: int) -> Morphology:
-    """(n, ...) bodies, each a walk of 0 to `longest` uniformly random valid mutations from m0
-    (its length uniform too)."""
+def random_walks(env: EvolutionEnv, key: jax.Array, first: EvoState, longest: int) -> Morphology:
+    """(N, ...) bodies, each a walk from `first`'s bodies (m0) of 0 to `longest` uniformly random
+    actions valid in `env` (its length uniform too)."""
     key_len, key_walk = jax.random.split(key)
-    lengths = jax.random.randint(key_len, (n,), 0, longest + 1)
+    lengths = jax.random.randint(key_len, (env.num_envs,), 0, longest + 1)
+    nm = env.space.num_mutations
 
-    def walk(key, length):
-        def step(m, x):
-            i, key = x
-            return tree_select(i < length, space.random_mutation(key, m), m), None
+    def step(morph, x):
+        i, key = x
+        action = random_valid_actions(key, env.observe(first.replace(morph=morph)).mask)
+        child = jax.vmap(env.space.mutate)(morph, action // nm, action % nm)
+        return tree_select(i < lengths, child, morph), None
 
-        m0 = space.initial()
-        m, _ = jax.lax.scan(lambda m, x: step(m, x), m0,
-                            (jnp.arange(longest), jax.random.split(key, longest)))
-        return m
-
-    return jax.vmap(walk)(jax.random.split(key_walk, n), lengths)
+    morph, _ = jax.lax.scan(step, first.morph,
+                            (jnp.arange(longest), jax.random.split(key_walk, longest)))
+    return morph
 
 
 def check_regularized_evolution(num_envs: int, population: int, tournament: int) -> None:
@@ -216,7 +215,7 @@ def make_regularized_evolution(env: EvolutionEnv,
         winners = jnp.take_along_axis(sample, jnp.argmax(fit, 1)[:, None], 1)[:, 0]
         parents = _take(evo, winners).replace(steps=jnp.zeros(n, jnp.int32))
         if cfg.first == "walks":  # until P members: walks of 0 to walk - 1, mutated once more
-            walks = random_walks(env.space, key_walk, n, cfg.walk - 1)
+            walks = random_walks(env, key_walk, first, cfg.walk - 1)
             parents = tree_select(jnp.broadcast_to(pop.size < p, (n,)),
                                   first.replace(morph=walks), parents)
         return pop, parents
