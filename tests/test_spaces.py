@@ -31,7 +31,8 @@ def reachable(space, max_depth=10):
 
 
 def test_registry():
-    assert em.list_spaces() == ["bad_walker", "constructor", "crawler", "length_walker"]
+    assert em.list_spaces() == ["bad_walker", "constructor", "crawler", "crawler_near",
+                               "length_walker"]
     with pytest.raises(ValueError, match="unknown space 'nope'.*bad_walker"):
         em.make_space("nope")
 
