@@ -143,8 +143,9 @@ def confirm_rows(visits, sums, s: Settings, space, table, cfg, keys) -> tuple[np
     return cand[np.arange(len(cand)), pick], means[np.arange(len(cand)), pick]
 
 
-def run_method(method: str, k: int, s: Settings, true: np.ndarray, sigs, table) -> dict:
-    """`s.seeds` runs of `method` at K = `k`, vmapped; the rows of the bodies they return."""
+def pipeline(method: str, k: int, s: Settings):
+    """(the run's pipeline of `method` on the table at K = `k`, its agent's config): the run's
+    defaults resolved, then --agent-settings' overrides."""
     cfg = RunConfig(space=s.space, fitness="table", table=s.table, agent=method,
                     num_envs=s.num_envs, controllers=k, hidden=s.hidden,
                     explore_steps=s.explore_steps, learning_starts=s.learning_starts)
@@ -152,7 +153,12 @@ def run_method(method: str, k: int, s: Settings, true: np.ndarray, sigs, table) 
     agent_cfg = agent_config(cfg, env)
     overrides = agent_overrides(s)[0].get(method, {})
     agent_cfg = dataclasses.replace(agent_cfg, **overrides) if overrides else agent_cfg
-    p = build(cfg, agent_cfg=agent_cfg)
+    return build(cfg, agent_cfg=agent_cfg), agent_cfg
+
+
+def run_method(method: str, k: int, s: Settings, true: np.ndarray, sigs, table) -> dict:
+    """`s.seeds` runs of `method` at K = `k`, vmapped; the rows of the bodies they return."""
+    p, agent_cfg = pipeline(method, k, s)
     rows = rows_fn(sigs)
 
     def step(state, n):
@@ -391,12 +397,22 @@ def freeze(data: Path, out: Path) -> dict:
     return frozen
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__,
+def settings_parser(doc: str) -> argparse.ArgumentParser:
+    """A parser of `doc` with a flag per `Settings` field (`settings_from` reads them back)."""
+    parser = argparse.ArgumentParser(description=doc,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     for f in dataclasses.fields(Settings):
         parser.add_argument("--" + f.name.replace("_", "-"), type=type(f.default),
                             default=f.default)
+    return parser
+
+
+def settings_from(args) -> Settings:
+    return Settings(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Settings)})
+
+
+def main():
+    parser = settings_parser(__doc__)
     parser.add_argument("--ks", type=int, nargs="+", default=[1, 4, 16])
     parser.add_argument("--methods", default=",".join(list_agents()),
                         help="comma-separated subset of " + ",".join(list_agents()))
@@ -412,7 +428,7 @@ def main():
         frozen = freeze(Path(args.freeze), Path(args.out))
         print(json.dumps(frozen["settings"], indent=1))
         return
-    s = Settings(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Settings)})
+    s = settings_from(args)
     space = make_space(s.space)
     table, sigs = table_fitness.load(space, FitnessConfig(kind="table", table=s.table))
     true = table.mean()

@@ -23,7 +23,6 @@ the runs' current parents:
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import time
@@ -37,10 +36,16 @@ from scipy.stats import spearmanr
 
 from evojax_morph.fitnesses import FitnessConfig
 from evojax_morph.fitnesses import table as table_fitness
-from evojax_morph.run.pipeline import RunConfig, agent_config, build
 from evojax_morph.spaces import make_space
 from experiments.common import band, save
-from experiments.compare_table import Settings, agent_overrides, rows_fn
+from experiments.compare_table import (
+    Settings,
+    agent_overrides,
+    pipeline,
+    rows_fn,
+    settings_from,
+    settings_parser,
+)
 
 
 def children_rows(space, rows, obs):
@@ -66,14 +71,7 @@ def rank_agreement(scores: np.ndarray, kid_rows: np.ndarray, parent_rows: np.nda
 
 
 def diagnose(method: str, s: Settings, k: int, true: np.ndarray, sigs) -> dict:
-    cfg = RunConfig(space=s.space, fitness="table", table=s.table, agent=method,
-                    num_envs=s.num_envs, controllers=k, hidden=s.hidden,
-                    explore_steps=s.explore_steps, learning_starts=s.learning_starts)
-    env = build(dataclasses.replace(cfg, agent="random")).env
-    agent_cfg = agent_config(cfg, env)
-    overrides = agent_overrides(s)[0].get(method, {})
-    agent_cfg = dataclasses.replace(agent_cfg, **overrides) if overrides else agent_cfg
-    p = build(cfg, agent_cfg=agent_cfg)
+    p, agent_cfg = pipeline(method, k, s)
     rows = rows_fn(sigs)
     space = p.space
 
@@ -111,17 +109,13 @@ def diagnose(method: str, s: Settings, k: int, true: np.ndarray, sigs) -> dict:
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    for f in dataclasses.fields(Settings):
-        parser.add_argument("--" + f.name.replace("_", "-"), type=type(f.default),
-                            default=f.default)
+    parser = settings_parser(__doc__)
     parser.add_argument("--k", type=int, default=1)
     parser.add_argument("--methods", default="ddqn,a2c,predictor")
     parser.add_argument("--out", default="runs/figures")
     parser.set_defaults(space="length_walker")
     args = parser.parse_args()
-    s = Settings(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Settings)})
+    s = settings_from(args)
     space = make_space(s.space)
     table, sigs = table_fitness.load(space, FitnessConfig(kind="table", table=s.table))
     true = table.mean()
