@@ -11,7 +11,7 @@ import pytest
 
 import evojax_morph as em
 from evojax_morph import agents
-from evojax_morph.fitnesses.table import signature
+from evojax_morph.morphology import signature
 from evojax_morph.run import study
 from evojax_morph.run.pipeline import RunConfig
 from experiments import common, crawler_study
@@ -80,8 +80,11 @@ def runs_as_alone(names, tmp_path):
         exact = lambda st: (st.evo, st.first, st.step, st.best_fitness, st.best_morph)  # noqa
         for a, b in zip(jax.tree.leaves(exact(state)), jax.tree.leaves(exact(mine))):
             np.testing.assert_array_equal(a, b, err_msg=m.name)
+        # A learner's weights part by float rounding that a few Adam steps carry on: at most
+        # 5.2e-7 apart here (2 cores, native, AVX2, AVX), 6.5e-7 on CI's machine (a weight of
+        # 0.031, relative 2e-5), against weights up to 19: a bound of 1e-5 holds a 15x margin.
         for a, b in zip(jax.tree.leaves(state.learner), jax.tree.leaves(mine.learner)):
-            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7, err_msg=m.name)
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5, err_msg=m.name)
         for name, x in metrics.items():
             if name in ("reward", "fitness", "best_fitness", "action"):
                 np.testing.assert_array_equal(np.swapaxes(x, 0, 1), got[name], err_msg=m.name)
