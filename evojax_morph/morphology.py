@@ -96,6 +96,46 @@ class Morphology:
         )
 
 
+ATTR_RESOLUTION = 1e-5  # attributes closer than this are one value (canonical uses 6 digits)
+
+
+def _mix(x: jax.Array) -> jax.Array:
+    """MurmurHash3's 32-bit finaliser: a bijection of uint32 that spreads every bit."""
+    x = x ^ (x >> 16)
+    x = x * jnp.uint32(0x85EBCA6B)
+    x = x ^ (x >> 13)
+    x = x * jnp.uint32(0xC2B2AE35)
+    return x ^ (x >> 16)
+
+
+def _signature(m: Morphology, seed: jax.Array) -> jax.Array:
+    """() uint32 hash of the tree under `seed`, bottom up: a node's hash mixes its (kind, site,
+    attributes) with the wrapping sum of its children's mixed hashes, so slot numbers and the
+    order of siblings do not count."""
+    quantised = jnp.round(m.attrs / ATTR_RESOLUTION).astype(jnp.int32)
+    code = _mix(seed ^ m.kind.astype(jnp.uint32))
+    code = _mix(code + m.site.astype(jnp.uint32) * jnp.uint32(0x9E3779B9))
+    for a in range(m.attrs.shape[-1]):
+        code = _mix(code + jax.lax.bitcast_convert_type(quantised[:, a], jnp.uint32))
+    acc = jnp.zeros(m.max_nodes, jnp.uint32)  # children's sum, filled before the node is read
+    for i in range(m.max_nodes - 1, 0, -1):  # a parent's index is smaller than its child's
+        subtree = _mix(code[i] + acc[i])
+        add = jnp.where(m.active[i], _mix(subtree ^ jnp.uint32(0x27D4EB2F)), jnp.uint32(0))
+        acc = acc.at[jnp.maximum(m.parent[i], 0)].add(add)
+    return _mix(code[0] + acc[0])
+
+
+SEEDS = (0x243F6A88, 0xB7E15162)  # two independent hashes: a 64-bit signature
+
+
+def signature(m: Morphology) -> jax.Array:
+    """(2,) uint32, jittable: a hash of the body's tree of (kind, site, attributes), equal for
+    bodies with equal `Space.canonical` names (slot numbers and sibling order ignored;
+    attributes to `ATTR_RESOLUTION`). Distinct bodies collide with probability about 2^-64;
+    a table checks its own bodies have distinct signatures when it is loaded (`fitnesses.table`)."""
+    return jnp.stack([_signature(m, jnp.uint32(s)) for s in SEEDS])
+
+
 def tree_select(cond: jax.Array, a, b):
     """Per batch element, `a` where `cond` else `b`, for pytrees with a leading (B,) axis."""
     return jax.tree.map(

@@ -6,8 +6,8 @@ trained from scratch. The fitness of a body is the mean of K results drawn witho
 from its row, K = `cfg.ppo.controllers`: the noise of the real fitness with K controllers, at
 the cost of a lookup; its gait (distance, upright) is the mean of the same K results' gaits,
 NaN where the table holds none. It runs inside the jitted agent loop: a body is matched to its
-row by a jittable signature of its tree (`signature`), equal exactly when the canonical names
-are.
+row by a jittable signature of its tree (`morphology.signature`), equal exactly when the
+canonical names are.
 
 No controllers and no inheritance: every draw is a fresh training's result, so a child does not
 start from its parent's controller and a no-op (or a revisit) draws again instead of training
@@ -31,12 +31,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from evojax_morph.fitnesses.base import Fitness, FitnessConfig, FitnessResult, Inputs
-from evojax_morph.morphology import Morphology, stack
+from evojax_morph.morphology import Morphology, signature, stack
 from evojax_morph.spaces import Space
 
 TABLES = Path(__file__).resolve().parent / "tables"
 FORMAT = 1  # the file layout's version, in every table's metadata
-ATTR_RESOLUTION = 1e-5  # attributes closer than this are one value (canonical uses 6 digits)
 
 
 def default_path(space_name: str) -> Path:
@@ -151,46 +150,6 @@ class Table:
             return cls(space, [str(n) for n in f["names"]], bodies,
                        np.asarray(f["fitness"], np.float32), np.asarray(f["diverged"]), meta,
                        *gait)
-
-
-# --- the signature: a body's row found inside jit ----------------------------------------------
-
-
-def _mix(x: jax.Array) -> jax.Array:
-    """MurmurHash3's 32-bit finaliser: a bijection of uint32 that spreads every bit."""
-    x = x ^ (x >> 16)
-    x = x * jnp.uint32(0x85EBCA6B)
-    x = x ^ (x >> 13)
-    x = x * jnp.uint32(0xC2B2AE35)
-    return x ^ (x >> 16)
-
-
-def _signature(m: Morphology, seed: jax.Array) -> jax.Array:
-    """() uint32 hash of the tree under `seed`, bottom up: a node's hash mixes its (kind, site,
-    attributes) with the wrapping sum of its children's mixed hashes, so slot numbers and the
-    order of siblings do not count."""
-    quantised = jnp.round(m.attrs / ATTR_RESOLUTION).astype(jnp.int32)
-    code = _mix(seed ^ m.kind.astype(jnp.uint32))
-    code = _mix(code + m.site.astype(jnp.uint32) * jnp.uint32(0x9E3779B9))
-    for a in range(m.attrs.shape[-1]):
-        code = _mix(code + jax.lax.bitcast_convert_type(quantised[:, a], jnp.uint32))
-    acc = jnp.zeros(m.max_nodes, jnp.uint32)  # children's sum, filled before the node is read
-    for i in range(m.max_nodes - 1, 0, -1):  # a parent's index is smaller than its child's
-        subtree = _mix(code[i] + acc[i])
-        add = jnp.where(m.active[i], _mix(subtree ^ jnp.uint32(0x27D4EB2F)), jnp.uint32(0))
-        acc = acc.at[jnp.maximum(m.parent[i], 0)].add(add)
-    return _mix(code[0] + acc[0])
-
-
-SEEDS = (0x243F6A88, 0xB7E15162)  # two independent hashes: a 64-bit signature
-
-
-def signature(m: Morphology) -> jax.Array:
-    """(2,) uint32, jittable: a hash of the body's tree of (kind, site, attributes), equal for
-    bodies with equal `Space.canonical` names (slot numbers and sibling order ignored;
-    attributes to `ATTR_RESOLUTION`). Distinct bodies collide with probability about 2^-64;
-    a table checks its own bodies have distinct signatures when it is loaded."""
-    return jnp.stack([_signature(m, jnp.uint32(s)) for s in SEEDS])
 
 
 # --- the fitness kind --------------------------------------------------------------------------

@@ -28,8 +28,8 @@ import numpy as np
 
 from evojax_morph import agents
 from evojax_morph.agents.base import Policy, make_steps
-from evojax_morph.fitnesses.table import signature
 from evojax_morph.mdp import EvolutionEnv, EvoState
+from evojax_morph.morphology import signature
 from evojax_morph.run.checkpoints import write_atomic
 from evojax_morph.run.pipeline import Pipeline, RunConfig, agent_config, build
 from evojax_morph.sharding import jit_replicated, to_host
@@ -49,7 +49,7 @@ class Study(NamedTuple):
     """init(keys (S,)) -> states, {method: AgentState (S, ...)}: seed s of every method starts
     from keys[s], as `from_policy`'s `init(keys[s])` would alone. chunk(states, num_steps) ->
     (states, metrics): {method: its agent's metrics (num_steps, S, ...), "bodies" left out,
-    with "signature" (num_steps, S, N_m, 2) uint32: each child's `table.signature`, and "morph"
+    with "signature" (num_steps, S, N_m, 2) uint32: each child's `morphology.signature`, and "morph"
     (num_steps, S, N_m, ...): each child, to recover a body from its signature
     (`best_mean_bodies`)}. evaluations: bodies a study step evaluates (one fitness call):
     sum_m S x N_m."""
