@@ -17,6 +17,7 @@ import evojax_morph as em
 from evojax_morph import agents
 from evojax_morph.agents import a2c, baselines
 from evojax_morph.fitnesses import table as tb
+from evojax_morph.morphology import signature
 from evojax_morph.run.pipeline import RunConfig, build
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -210,6 +211,35 @@ def test_predictor_stores_every_evaluation_and_scores_valid_children():
     mask = np.asarray(obs.mask)
     assert (scores[~mask] <= -1e8).all() and np.isfinite(scores[mask]).all()
     assert (scores[mask] > -1e8).all()
+
+
+def test_predictor_evaluates_a_body_again_only_when_every_child_was():
+    """Scoring every valid mutation of its parent, the predictor picks a child evaluated before
+    only when all of the parent's children were; without the rule (`unseen_first=False`) the
+    greedy picks go back to bodies already seen while new ones were on offer."""
+    env = on_table("random", 1).env
+    space = env.space
+    nm = space.num_mutations
+
+    def revisits(unseen_first):
+        agent = agents.make_agent("predictor", env, learning_starts=8, candidates=1024,
+                                  ensemble=2, unseen_first=unseen_first)
+        _, m = agent.chunk(agent.init(jax.random.PRNGKey(0)), 40)
+        sig = np.asarray(jax.vmap(signature)(jax.tree.map(lambda x: x[:, 0],
+                                                              m["bodies"]["morph"])))
+        avoidable = 0
+        for t in range(8, 40):
+            parent = jax.tree.map(lambda x, t=t: x[t, 0], m["bodies"]["parent"])
+            acts = np.flatnonzero(np.asarray(space.action_mask(parent)).reshape(-1))
+            kids = jax.vmap(lambda a, p=parent: space.mutate(p, a // nm, a % nm))(
+                jnp.asarray(acts))
+            seen = {tuple(s) for s in sig[:t]}
+            offered = {tuple(s) for s in np.asarray(jax.vmap(signature)(kids))}
+            avoidable += tuple(sig[t]) in seen and not offered <= seen
+        return avoidable
+
+    assert revisits(True) == 0
+    assert revisits(False) > 0
 
 
 @pytest.mark.learning

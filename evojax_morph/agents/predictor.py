@@ -9,10 +9,14 @@ mutations are drawn uniformly and the children they make are scored by an ensemb
 body log's data: body -> fitness); the child of the highest acquisition is evaluated:
 independent Thompson sampling ("its": the ensemble's mean plus its spread times a standard
 normal draw per child, BANANAS's choice) or an upper confidence bound ("ucb": mean plus
-`kappa` spreads). Before `learning_starts` evaluations are stored it mutates at random, as
-regularized evolution does. Only the evaluated children count against a run's budget; the
-predictor's own compute (training and scoring) is in the agent's step, on the clock of every
-comparison.
+`kappa` spreads). A child evaluated before (its `morphology.signature` in the data) is chosen
+only when every candidate was (`unseen_first`, BANANAS's removal of duplicates): a greedy
+predictor otherwise sends a parent to the same best-predicted child again and again, and the
+aging population fills with copies of a few bodies (48 distinct bodies in 10,000 evaluations
+on the Length Walker walking table without it; docs/results.md). Before `learning_starts`
+evaluations are stored it mutates at random, as regularized evolution does. Only the evaluated
+children count against a run's budget; the predictor's own compute (training and scoring) is in
+the agent's step, on the clock of every comparison.
 
 With a predictor that knows nothing the choice is a random valid mutation, so the agent is
 regularized evolution plus what the predictor learned: what it adds is measured against that.
@@ -32,7 +36,7 @@ from evojax_morph.agents import baselines
 from evojax_morph.agents.base import Policy, RunOptions
 from evojax_morph.agents.gnn import TreeGNN, node_features
 from evojax_morph.mdp import NEG, EvolutionEnv, Observation, random_valid_actions
-from evojax_morph.morphology import Morphology
+from evojax_morph.morphology import Morphology, signature
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,6 +49,7 @@ class PredictorConfig:
     candidates: int = 16  # valid mutations of each parent scored per step
     acquisition: str = "its"  # "its" (Thompson, per child) or "ucb" (mean + kappa spreads)
     kappa: float = 1.0  # ucb only
+    unseen_first: bool = True  # a child evaluated before only when every candidate was
     buffer_size: int = 16_384  # evaluations kept to learn from (a ring)
     batch_size: int = 64
     updates_per_step: int = 4
@@ -101,6 +106,7 @@ class Data:
 
     morph: Morphology  # (C, ...)
     fitness: jax.Array  # (C,)
+    signature: jax.Array  # (C, 2) uint32: each body's `morphology.signature`
     pos: jax.Array  # () int32: the next slot
     size: jax.Array  # () int32: slots filled
 
@@ -155,8 +161,8 @@ def make_policy(env: EvolutionEnv, cfg: PredictorConfig) -> Policy:
         one = jax.tree.map(lambda x: x[0], obs.morph)
         params = init_net(keys[0], one)
         data = Data(jax.tree.map(lambda x: jnp.zeros((cfg.buffer_size, *x.shape), x.dtype), one),
-                    jnp.zeros(cfg.buffer_size), jnp.zeros((), jnp.int32),
-                    jnp.zeros((), jnp.int32))
+                    jnp.zeros(cfg.buffer_size), jnp.zeros((cfg.buffer_size, 2), jnp.uint32),
+                    jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32))
         return PredictorLearner(params, jax.vmap(optimizer.init)(params), data,
                                 parents.init(keys[1:], obs))
 
@@ -177,6 +183,13 @@ def make_policy(env: EvolutionEnv, cfg: PredictorConfig) -> Policy:
             value = mean + spread * jax.random.normal(key_its, mean.shape)
         else:
             value = mean + cfg.kappa * spread
+        if cfg.unseen_first:  # SEEN: a candidate's signature among the evaluations stored
+            sig = jax.vmap(jax.vmap(signature))(kids)  # (N, k, 2)
+            data = learner.data
+            filled = jnp.arange(cfg.buffer_size) < data.size
+            seen = jnp.any((sig[:, :, None] == data.signature).all(-1) & filled, -1)  # (N, k)
+            unseen = valid & ~seen
+            valid = jnp.where(unseen.any(1, keepdims=True), unseen, valid)
         pick = jnp.take_along_axis(cand, jnp.argmax(jnp.where(valid, value, NEG), 1)[:, None],
                                    1)[:, 0]
         ready = learner.data.size >= cfg.learning_starts
@@ -188,8 +201,9 @@ def make_policy(env: EvolutionEnv, cfg: PredictorConfig) -> Policy:
         data = learner.data
         idx = (data.pos + jnp.arange(n)) % cfg.buffer_size
         data = Data(jax.tree.map(lambda s, x: s.at[idx].set(x), data.morph, children.morph),
-                    data.fitness.at[idx].set(children.fitness), (data.pos + n) % cfg.buffer_size,
-                    jnp.minimum(data.size + n, cfg.buffer_size))
+                    data.fitness.at[idx].set(children.fitness),
+                    data.signature.at[idx].set(jax.vmap(signature)(children.morph)),
+                    (data.pos + n) % cfg.buffer_size, jnp.minimum(data.size + n, cfg.buffer_size))
         pop, evo = parents.next_evo(env, learner.pop, keys, parents_evo, children, first, done)
         return learner.replace(data=data, pop=pop), evo
 
