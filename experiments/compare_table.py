@@ -459,6 +459,7 @@ def main():
             start = time.time()
             res = run_method(method, k, s, true, sigs, table)
             res["date"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+            res["device"] = summary["device"]  # a file resumed elsewhere holds runs of both
             summary["results"].setdefault(str(k), {})[method] = res
             print(f"K={k} {method}: median true fitness {np.median(res['true_fitness']):.1f}, "
                   f"{res['seconds']:.1f} s + {res['compile_seconds']:.1f} s compiling "
