@@ -31,6 +31,7 @@ from evojax_morph.run.checkpoints import (
     digests,
     restore_checked,
     restore_newest,
+    write_atomic,
 )
 from evojax_morph.run.pipeline import RunConfig, build
 
@@ -185,6 +186,28 @@ def test_resume_matches_an_uninterrupted_run(tmp_path, straight, monkeypatch):
     ]
     for x, y in zip(jax.tree.leaves(restore(straight)), jax.tree.leaves(restore(split))):
         np.testing.assert_array_equal(x, y)
+
+
+def test_a_rewritten_file_is_the_old_one_or_the_new_one_whole(tmp_path, monkeypatch):
+    """metrics.csv and the other files a run rewrites go through `write_atomic`: a write that
+    fails before its rename (here the flush to the disk) leaves the old file as it was; one
+    that ends leaves the new file and no temporary beside it."""
+    import os
+
+    path = tmp_path / "metrics.csv"
+    write_atomic(path, "step\n1\n")
+
+    def cut(fd):
+        raise OSError(28, "No space left on device")
+
+    with monkeypatch.context() as m:
+        m.setattr(os, "fsync", cut)
+        with pytest.raises(OSError):
+            write_atomic(path, "step\n1\n2\n")
+    assert path.read_text() == "step\n1\n"
+    write_atomic(path, b"step\n1\n2\n")
+    assert path.read_text() == "step\n1\n2\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["metrics.csv"]
 
 
 def _snapshot(run_dir: Path) -> dict:

@@ -194,52 +194,50 @@ def test_regularized_evolution_first_population_of_walks():
     np.testing.assert_array_equal(state.evo.fitness, np.full(n, members.max()))
 
 
-def test_predictor_stores_every_evaluation_and_scores_valid_children():
-    """The predictor's data set holds each step's children and their draws, in order; its
-    scores rank only valid actions (masked ones at the floor)."""
-    n = 4
-    env = on_table("random", n).env
-    agent = agents.make_agent("predictor", env, learning_starts=8, candidates=4, ensemble=2)
-    state = agent.init(jax.random.PRNGKey(0))
-    state, m = agent.chunk(state, 3)
+def test_predictor_stores_its_evaluations_and_revisits_only_when_every_child_was_seen():
+    """The predictor's data set holds each step's child, its draw and its signature, in order;
+    its scores rank only valid actions (masked ones at the floor). Scoring every valid
+    mutation of its parent, it picks a child evaluated before only when all of the parent's
+    children were; without the rule (`unseen_first=False`) the greedy picks go back to bodies
+    already seen while new ones were on offer."""
+    env = on_table("random", 1).env
+    space, nm, steps, starts = env.space, env.space.num_mutations, 40, 8
+
+    def run(unseen_first):
+        agent = agents.make_agent("predictor", env, learning_starts=starts, candidates=1024,
+                                  ensemble=2, unseen_first=unseen_first)
+        return agent, *agent.chunk(agent.init(jax.random.PRNGKey(0)), steps)
+
+    @jax.jit
+    def offered(parents):  # (T, A) each valid child's signature and the mask
+        every = jnp.arange(space.max_nodes * nm)
+        kids = jax.vmap(lambda p: jax.vmap(lambda a: signature(space.mutate(
+            p, a // nm, a % nm)))(every))(parents)
+        return kids, jax.vmap(lambda p: space.action_mask(p).reshape(-1))(parents)
+
+    def avoidable_revisits(m):
+        body = lambda x: x[:, 0]  # noqa: E731
+        sig = np.asarray(jax.vmap(signature)(jax.tree.map(body, m["bodies"]["morph"])))
+        kids, mask = map(np.asarray, offered(jax.tree.map(body, m["bodies"]["parent"])))
+        count = 0
+        for t in range(starts, steps):
+            seen = {tuple(x) for x in sig[:t]}
+            unseen_offered = any(tuple(k) not in seen for k in kids[t][mask[t]])
+            count += tuple(sig[t]) in seen and unseen_offered
+        return count, sig
+
+    agent, state, m = run(True)
     data = state.learner.data
-    assert int(data.size) == 3 * n
-    np.testing.assert_array_equal(np.asarray(data.fitness)[: 3 * n],
+    count, sig = avoidable_revisits(m)
+    assert int(data.size) == steps and count == 0
+    np.testing.assert_array_equal(np.asarray(data.fitness)[:steps],
                                   np.asarray(m["fitness"]).reshape(-1))
+    np.testing.assert_array_equal(np.asarray(data.signature)[:steps], sig)
     obs = env.observe(state.evo)
-    scores = np.asarray(agent.scores(state.learner, obs))
-    mask = np.asarray(obs.mask)
+    scores, mask = np.asarray(agent.scores(state.learner, obs)), np.asarray(obs.mask)
     assert (scores[~mask] <= -1e8).all() and np.isfinite(scores[mask]).all()
     assert (scores[mask] > -1e8).all()
-
-
-def test_predictor_evaluates_a_body_again_only_when_every_child_was():
-    """Scoring every valid mutation of its parent, the predictor picks a child evaluated before
-    only when all of the parent's children were; without the rule (`unseen_first=False`) the
-    greedy picks go back to bodies already seen while new ones were on offer."""
-    env = on_table("random", 1).env
-    space = env.space
-    nm = space.num_mutations
-
-    def revisits(unseen_first):
-        agent = agents.make_agent("predictor", env, learning_starts=8, candidates=1024,
-                                  ensemble=2, unseen_first=unseen_first)
-        _, m = agent.chunk(agent.init(jax.random.PRNGKey(0)), 40)
-        sig = np.asarray(jax.vmap(signature)(jax.tree.map(lambda x: x[:, 0],
-                                                              m["bodies"]["morph"])))
-        avoidable = 0
-        for t in range(8, 40):
-            parent = jax.tree.map(lambda x, t=t: x[t, 0], m["bodies"]["parent"])
-            acts = np.flatnonzero(np.asarray(space.action_mask(parent)).reshape(-1))
-            kids = jax.vmap(lambda a, p=parent: space.mutate(p, a // nm, a % nm))(
-                jnp.asarray(acts))
-            seen = {tuple(s) for s in sig[:t]}
-            offered = {tuple(s) for s in np.asarray(jax.vmap(signature)(kids))}
-            avoidable += tuple(sig[t]) in seen and not offered <= seen
-        return avoidable
-
-    assert revisits(True) == 0
-    assert revisits(False) > 0
+    assert avoidable_revisits(run(False)[2])[0] > 0
 
 
 @pytest.mark.learning

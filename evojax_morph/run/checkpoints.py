@@ -14,6 +14,7 @@ import contextlib
 import hashlib
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -28,12 +29,24 @@ from evojax_morph.sharding import to_host
 FINITE = (".learner", ".evo.params", ".first.params", ".best_params")
 
 
-def write_atomic(path: Path, data: bytes) -> None:
-    """`data` to `path`, written beside it and renamed over it: a write cut short leaves the
-    last whole file (the experiments' resumable pickles)."""
+def write_atomic(path: Path, data: bytes | str) -> None:
+    """`data` (str: UTF-8) to `path`: written to PATH.tmp beside it, flushed to the disk and
+    renamed over it, the folder flushed after, so a reader, or a resume after a kill or a power
+    cut, finds the last whole file or the new whole one, never a part (a run's metrics.csv,
+    config.json, summary.json, confirmed.json; the experiments' resumable pickles)."""
+    data = data.encode() if isinstance(data, str) else data
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.with_suffix(".tmp").write_bytes(data)
-    path.with_suffix(".tmp").replace(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    folder = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(folder)
+    finally:
+        os.close(folder)
 
 
 def checkpoint_manager(out: Path):

@@ -137,7 +137,8 @@ def confirm_stage(run, evolved, ahead, clock) -> Best:
     clock.phase("controllers")
     if top is not None and run.lead:  # written last: the stage is done, a --resume keeps it
         record["best_morphology"] = best.to_dict()
-        (run.out / "confirmed.json").write_text(json.dumps(checkpoints.seal(record), indent=1))
+        checkpoints.write_atomic(run.out / "confirmed.json",
+                                 json.dumps(checkpoints.seal(record), indent=1))
     return Best(best, best_fitness, record, top, saved, greedy)
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import json
 import sys
 import time
@@ -143,8 +144,8 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
     abstract), step and state None where no checkpoint was restored, abstract the agent state's
     shapes and placement (what the later programs are compiled for)."""
     lead = jax.process_index() == 0
-    write_config = lambda: (out / "config.json").write_text(  # noqa: E731
-        json.dumps(dataclasses.asdict(cfg), indent=1))
+    write_config = lambda: checkpoints.write_atomic(  # noqa: E731
+        out / "config.json", json.dumps(dataclasses.asdict(cfg), indent=1))
     if lead and not resume:
         write_config()
     p = build(cfg)
@@ -253,10 +254,11 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: 
                         best=f"{rows[-1]['best_fitness']:.3g}")
         if lead:
             run.bodies.commit()
-            with open(run.out / "metrics.csv", "w", newline="") as f:
-                w = csv.DictWriter(f, fieldnames=list(rows[0]))
-                w.writeheader()
-                w.writerows(rows)
+            table = io.StringIO(newline="")
+            w = csv.DictWriter(table, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+            checkpoints.write_atomic(run.out / "metrics.csv", table.getvalue())
         if chunks_done % cfg.checkpoint_every == 0 or step >= cfg.steps:
             run.manager.save(step, args=checkpoints.save_args(state))
     bar.close()

@@ -11,6 +11,7 @@ import numpy as np
 
 from evojax_morph.fitnesses import FitnessConfig
 from evojax_morph.run import plots, video
+from evojax_morph.run.checkpoints import write_atomic
 from evojax_morph.run.compile_ahead import Job
 from evojax_morph.run.pipeline import Greedy
 from evojax_morph.tasks import gait_word
@@ -76,7 +77,7 @@ def report_stage(run, evolved, best, clock) -> None:
         "phases": clock.phases, "first_chunk_dispatch": evolved.dispatch,
         "chunk_seconds": [round(s, 2) for _, s in evolved.chunk_seconds],
         "parts": clock.parts, "waits": clock.waits, "where": where(run.cfg)}
-    (run.out / "timing.json").write_text(json.dumps(times, indent=1))
+    write_atomic(run.out / "timing.json", json.dumps(times, indent=1))
     if times["step_seconds"]:
         print(f"time: {times['seconds']:.0f} s, {times['step_seconds']:.3g} s a step, "
               f"{times['outside_steps_seconds']:.0f} s outside the steps (timing.json; "
@@ -114,7 +115,7 @@ def write_results(run, evolved, best, phase=lambda name: None) -> None:
     col = lambda name: np.array([r[name] for r in rows], float)  # noqa: E731  (resumed: strings)
     plots.plot_curve(out / "curve.png", col("step"), col("reward_median"), col("reward_q25"),
                      col("reward_q75"))
-    (out / "best.xml").write_text(space.to_mjcf(best.morph))
+    write_atomic(out / "best.xml", space.to_mjcf(best.morph))
     if summary["confirmed"]:
         plots.plot_confirmed(out / "confirmed.png", summary["confirmed"])
         written = "confirmed.json confirmed.png " + written
@@ -134,7 +135,7 @@ def write_results(run, evolved, best, phase=lambda name: None) -> None:
     elif not saved:
         print("\nno controllers to keep: the fitness trains none (only ppo does), so no best.gif")
     phase("best_gif")
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    write_atomic(out / "summary.json", json.dumps(summary, indent=1))
     print(f"\nwrote {out}/: {written}")
 
 
