@@ -210,6 +210,26 @@ def test_a_rewritten_file_is_the_old_one_or_the_new_one_whole(tmp_path, monkeypa
     assert [p.name for p in tmp_path.iterdir()] == ["metrics.csv"]
 
 
+def test_a_second_run_on_a_held_directory_exits_2_naming_the_holder(tmp_path, capsys):
+    """While a run holds --out (its .lock flocked, its pid inside), another run or resume there
+    exits 2 at once with one line naming that pid, and writes nothing there."""
+    import fcntl
+
+    out = tmp_path / "run"
+    out.mkdir()
+    with open(out / ".lock", "w") as holder:
+        fcntl.flock(holder, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        holder.write("4242")
+        holder.flush()
+        with pytest.raises(SystemExit) as e:
+            cli.main(TINY + ["--steps", "3", "--out", str(out)])
+        assert e.value.code == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "in use by another run (pid 4242)" in err[0], err
+        assert sorted(p.name for p in out.iterdir()) == [".lock"]
+        assert (out / ".lock").read_text() == "4242"
+
+
 def _snapshot(run_dir: Path) -> dict:
     return {str(f.relative_to(run_dir)): f.read_bytes()
             for f in sorted(run_dir.rglob("*")) if f.is_file()}

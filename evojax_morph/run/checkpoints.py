@@ -11,6 +11,7 @@ confirmed.json carry digests of the same kind (`digests`, `seal`).
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import hashlib
 import json
 import logging
@@ -58,6 +59,39 @@ def checkpoint_manager(out: Path):
 
 class ResumeError(RuntimeError):
     """No checkpoint of a run directory could be read back."""
+
+
+class Locked(RuntimeError):
+    """Another run or resume holds the run directory (`lock`)."""
+
+
+@contextlib.contextmanager
+def lock(out: Path):
+    """An exclusive lock on the run directory `out` for the run's whole life: its file .lock
+    holds the holder's pid, locked with flock (released by the kernel when the process ends,
+    however it ends). A second run or resume on `out` raises `Locked` at once, naming the
+    holder; `python -m evojax_morph.run` says so in one line and exits 2. The lead process of
+    a distributed run holds it for them all."""
+    if jax.process_index() != 0:
+        yield
+        return
+    f = open(out / ".lock", "a+")  # noqa: SIM115  (held open for the run's life)
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        f.seek(0)
+        holder = f.read().strip() or "unknown"
+        f.close()
+        raise Locked(f"{str(out)!r} is in use by another run (pid {holder}): wait for it to "
+                     "end, or pass another --out") from None
+    try:
+        f.seek(0)
+        f.truncate()
+        f.write(str(os.getpid()))
+        f.flush()
+        yield
+    finally:
+        f.close()
 
 
 class Damaged(ValueError):

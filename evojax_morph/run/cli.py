@@ -7,6 +7,8 @@ events (tb/), curve.png, trajectory.png, best.xml, summary.json, timing.json (wh
 clock went, and on what) and Orbax checkpoints, and with
 the ppo fitness controllers/ (the best body's and the greedy trajectory's, for
 `python -m evojax_morph.render`) and best.gif; --resume continues a run from its last checkpoint.
+A run holds its directory for its whole life (.lock, with its pid): a second run or resume there
+exits 2 at once. The files it rewrites are replaced whole (`checkpoints.write_atomic`).
 At the end the --confirm bodies of the highest mean fitness in the body log are evaluated again
 from scratch, --confirm-controllers times each (confirmed.json, confirmed.png): the best of them
 by that mean is the run's best body (best.xml, best.gif); summary.json keeps the highest single
@@ -377,10 +379,12 @@ def main(argv: list[str] | None = None) -> int:
     full_precision()  # the agents' networks too, not only the PPO fitness (`full_precision`)
     persistent_cache()  # a second run of the same shapes skips XLA's compiles
     try:
-        driver.execute(cfg, out, resume, gif)
-    except (checkpoints.ResumeError, checkpoints.Damaged) as e:
-        # Bad input, as the parser's errors: code 2 and why (no checkpoint reads, or a file the
-        # run reads back, a saved controller or confirmed.json, is damaged).
+        with checkpoints.lock(out):
+            driver.execute(cfg, out, resume, gif)
+    except (checkpoints.ResumeError, checkpoints.Damaged, checkpoints.Locked) as e:
+        # Bad input, as the parser's errors: code 2 and why (no checkpoint reads, a file the
+        # run reads back, a saved controller or confirmed.json, is damaged, or another run
+        # holds --out).
         print(f"python -m evojax_morph.run: error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
     return 0
