@@ -230,6 +230,20 @@ def test_a_second_run_on_a_held_directory_exits_2_naming_the_holder(tmp_path, ca
         assert (out / ".lock").read_text() == "4242"
 
 
+def test_a_resume_runs_to_its_saved_steps_unless_told(tmp_path):
+    """--resume without --steps continues to the steps its run was started with (not the
+    default 40, which would also rewrite the saved count); --steps N moves the end to N."""
+    import dataclasses
+
+    out = tmp_path / "run"
+    out.mkdir()
+    saved = dataclasses.replace(RunConfig(space="bad_walker", fitness="predefined"), steps=9)
+    (out / "config.json").write_text(json.dumps(dataclasses.asdict(saved)))
+    assert cli.parse(["--out", str(out), "--resume"])[0].steps == 9
+    assert cli.parse(["--out", str(out), "--resume", "--steps", "12"])[0].steps == 12
+    assert cli.parse(["--out", str(tmp_path / "new")])[0].steps == RunConfig().steps
+
+
 def _snapshot(run_dir: Path) -> dict:
     return {str(f.relative_to(run_dir)): f.read_bytes()
             for f in sorted(run_dir.rglob("*")) if f.is_file()}

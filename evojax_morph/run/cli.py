@@ -119,6 +119,8 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
     check(parser, args)
     if not args.resume:
         args.physics = physics(parser, args.physics, args.fitness)
+    if args.steps is None and not args.resume:  # a --resume takes its run's
+        args.steps = defaults.steps
     if args.controllers is None:  # a --resume takes its run's
         args.controllers = defaults.controllers
         if gpu and not args.resume:
@@ -141,7 +143,8 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
             parser.error(f"--resume: no run in {str(out)!r} (no config.json)")
         # a run begun before tasks were named trained under the source's task
         config = {"task": "distance", **json.loads(saved.read_text())}
-        cfg = dataclasses.replace(RunConfig(**config), steps=args.steps)
+        cfg = RunConfig(**config)
+        cfg = dataclasses.replace(cfg, steps=cfg.steps if args.steps is None else args.steps)
         cfg = dataclasses.replace(cfg, physics=physics(parser, cfg.physics, cfg.fitness))
     elif (out / "checkpoints").exists():
         parser.error(
@@ -185,12 +188,13 @@ def add_run_flags(group, defaults: RunConfig) -> None:
     """The space, seed, run directory and the size of the run."""
     add = group.add_argument
     add("--space", default=defaults.space, help=f"morphology space: {', '.join(list_spaces())}")
-    add("--steps", type=int, default=defaults.steps,
-        help="environment steps; each mutates every parallel evolution once")
+    add("--steps", type=int, default=None,
+        help=f"environment steps; each mutates every parallel evolution once (default: "
+        f"{defaults.steps}; a --resume: its run's)")
     add("--seed", type=int, default=defaults.seed, help="seed of every random choice of the run")
     add("--out", default=None, help="run directory (default: a new runs/SPACE-FITNESS-seedS[-N])")
     add("--resume", action="store_true",
-        help="continue the run in --out from its last checkpoint, up to --steps")
+        help="continue the run in --out from its last checkpoint, up to its --steps or a new one")
     add("--num-envs", type=int, default=defaults.num_envs,
         help="parallel evolutions: the fitness batch of a step")
     add(
