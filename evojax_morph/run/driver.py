@@ -168,6 +168,9 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
         step, state, _ = checkpoints.restore_newest(
             out, lambda manager, step: checkpoints.restore_checked(manager, step, abstract), log
         )
+        if step is None:
+            log(f"--resume: {out} holds no checkpoint yet (the run stopped before its first), "
+                "so it starts again from m0")
         if lead:  # a checkpoint reads (or there is none): the run goes on under this config
             write_config()
     _, manager = checkpoints.checkpoint_manager(out)
