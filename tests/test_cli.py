@@ -244,6 +244,34 @@ def test_a_resume_runs_to_its_saved_steps_unless_told(tmp_path):
     assert cli.parse(["--out", str(tmp_path / "new")])[0].steps == RunConfig().steps
 
 
+def test_a_full_disk_stops_the_run_with_one_line_and_exit_1(tmp_path, capsys, monkeypatch):
+    """A write that fails mid-run (here metrics.csv after step 6's chunk, the disk full) stops
+    the run with exit 1 and one line: the error, the file and the step it can resume from; the
+    checkpoints before it are kept."""
+    import errno
+
+    from evojax_morph.run import checkpoints as ckpt
+
+    write, metrics_writes = ckpt.write_atomic, []
+
+    def full_after_6(path, data):
+        if path.name == "metrics.csv":
+            metrics_writes.append(path)
+            if len(metrics_writes) == 3:  # after the chunks to steps 3 and 6 and their saves
+                raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        write(path, data)
+
+    monkeypatch.setattr(ckpt, "write_atomic", full_after_6)
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as e:
+        cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 1 and len(err) == 1, err
+    assert err[0] == (f"python -m evojax_morph.run: error: No space left on device "
+                      f"({out / 'metrics.csv'}); the run can --resume from step 6 (--out {out} "
+                      "--resume)"), err
+
+
 def _snapshot(run_dir: Path) -> dict:
     return {str(f.relative_to(run_dir)): f.read_bytes()
             for f in sorted(run_dir.rglob("*")) if f.is_file()}

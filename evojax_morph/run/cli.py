@@ -391,7 +391,20 @@ def main(argv: list[str] | None = None) -> int:
         # holds --out).
         print(f"python -m evojax_morph.run: error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
+    except OSError as e:  # the machine's fault (a full disk, a folder made read-only): code 1
+        print(f"python -m evojax_morph.run: error: {e.strerror or e} ({e.filename or out}); "
+              f"{resumable(out)}", file=sys.stderr)
+        raise SystemExit(1) from None
     return 0
+
+
+def resumable(out: Path) -> str:
+    """What a run stopped by a fault can do next: resume from its newest checkpoint, if any."""
+    folder = out / "checkpoints"
+    steps = [int(d.name) for d in folder.iterdir() if d.name.isdigit()] if folder.is_dir() else []
+    if steps:
+        return f"the run can --resume from step {max(steps)} (--out {out} --resume)"
+    return "no checkpoint was saved: start it again"
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ and `report.report_stage`. Each stage offers the programs it will call, which co
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import io
@@ -236,34 +237,39 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: 
     bar = tqdm(total=cfg.steps, initial=min(step, cfg.steps), unit="step", dynamic_ncols=True,
                file=sys.stdout, disable=not lead)
     chunks_done, chunk_seconds, dispatch = 0, [], None
-    while step < cfg.steps:
-        n = min(cfg.chunk, cfg.steps - step)
-        ahead.wait(f"chunk {n}")
-        if loading is not None:
-            waited = time.perf_counter()
-            loading.result()
-            clock.waits["preload"], loading = round(time.perf_counter() - waited, 2), None
-        chunk_start = time.perf_counter()
-        state, metrics = run.p.agent.chunk(state, n)
-        if dispatch is None:  # when the call returns; to_host then waits for the device
-            dispatch = round(time.perf_counter() - chunk_start, 2)
-        metrics = to_host(metrics)
-        chunk_seconds.append((n, time.perf_counter() - chunk_start))
-        rows += _record_chunk(run, step, n, metrics, writer)
-        step += n
-        chunks_done += 1
-        bar.update(n)
-        bar.set_postfix(reward=f"{rows[-1]['reward_median']:.3g}",
-                        best=f"{rows[-1]['best_fitness']:.3g}")
-        if lead:
-            run.bodies.commit()
-            table = io.StringIO(newline="")
-            w = csv.DictWriter(table, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
-            checkpoints.write_atomic(run.out / "metrics.csv", table.getvalue())
-        if chunks_done % cfg.checkpoint_every == 0 or step >= cfg.steps:
-            run.manager.save(step, args=checkpoints.save_args(state))
+    try:
+        while step < cfg.steps:
+            n = min(cfg.chunk, cfg.steps - step)
+            ahead.wait(f"chunk {n}")
+            if loading is not None:
+                waited = time.perf_counter()
+                loading.result()
+                clock.waits["preload"], loading = round(time.perf_counter() - waited, 2), None
+            chunk_start = time.perf_counter()
+            state, metrics = run.p.agent.chunk(state, n)
+            if dispatch is None:  # when the call returns; to_host then waits for the device
+                dispatch = round(time.perf_counter() - chunk_start, 2)
+            metrics = to_host(metrics)
+            chunk_seconds.append((n, time.perf_counter() - chunk_start))
+            rows += _record_chunk(run, step, n, metrics, writer)
+            step += n
+            chunks_done += 1
+            bar.update(n)
+            bar.set_postfix(reward=f"{rows[-1]['reward_median']:.3g}",
+                            best=f"{rows[-1]['best_fitness']:.3g}")
+            if lead:
+                run.bodies.commit()
+                table = io.StringIO(newline="")
+                w = csv.DictWriter(table, fieldnames=list(rows[0]))
+                w.writeheader()
+                w.writerows(rows)
+                checkpoints.write_atomic(run.out / "metrics.csv", table.getvalue())
+            if chunks_done % cfg.checkpoint_every == 0 or step >= cfg.steps:
+                run.manager.save(step, args=checkpoints.save_args(state))
+    except OSError:  # a full disk, a folder made read-only: the checkpoints in flight land
+        with contextlib.suppress(Exception):  # first, so the run resumes from the newest
+            run.manager.wait_until_finished()
+        raise
     bar.close()
     run.manager.wait_until_finished()
     ranked = draw = None
