@@ -69,6 +69,7 @@ TINY = [
         (["--agent", "regularized_evolution", "--num-envs", "1", "--population", "1"],
          "the population must be at least 2, got 1"),
         (["--agent", "evolution", "--num-envs", "1"], "it needs at least 2 parallel evolutions"),
+        (["--seed", str(2**64)], "--seed must fit in 64 bits"),
     ],
 )
 def test_bad_input_exits_with_2(args, message, capsys, tmp_path):
@@ -77,6 +78,28 @@ def test_bad_input_exits_with_2(args, message, capsys, tmp_path):
     assert e.value.code == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "run").exists()  # nothing half-written
+
+
+@pytest.mark.parametrize("damage", ["cut", "key", "type", "space"])
+def test_a_resume_of_a_damaged_config_exits_2(damage, capsys, tmp_path):
+    """A config.json cut short, with a key RunConfig does not know, a value of the wrong type
+    or an unknown space: --resume exits 2 saying the file is not a run's config, and changes
+    nothing there."""
+    import dataclasses
+
+    config = dataclasses.asdict(RunConfig())
+    text = {"cut": json.dumps(config)[:40],
+            "key": json.dumps({**config, "speed": 3}),
+            "type": json.dumps({**config, "steps": "nine"}),
+            "space": json.dumps({**config, "space": "nope"})}[damage]
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.json").write_text(text)
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--out", str(out), "--resume"])
+    assert e.value.code == 2 and "is not a run's config.json" in capsys.readouterr().err
+    assert [p.name for p in out.iterdir()] == ["config.json"]
+    assert (out / "config.json").read_text() == text
 
 
 def test_unwritable_out_and_missing_resume(capsys, tmp_path):

@@ -141,9 +141,18 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
     if args.resume:
         if not saved.exists():
             parser.error(f"--resume: no run in {str(out)!r} (no config.json)")
-        # a run begun before tasks were named trained under the source's task
-        config = {"task": "distance", **json.loads(saved.read_text())}
-        cfg = RunConfig(**config)
+        try:  # a run begun before tasks were named trained under the source's task
+            config = {"task": "distance", **json.loads(saved.read_text())}
+            cfg = RunConfig(**config)
+            get_space(cfg.space)
+            wrong = [f.name for f in dataclasses.fields(RunConfig)
+                     if type(getattr(cfg, f.name)) is not type(getattr(RunConfig(), f.name))
+                     and not (isinstance(getattr(cfg, f.name), int)
+                              and isinstance(getattr(RunConfig(), f.name), float))]
+            if wrong:
+                raise TypeError(f"wrong type of {', '.join(wrong)}")
+        except (ValueError, TypeError) as e:  # cut short, an unknown key, space or type
+            parser.error(f"--resume: {str(saved)!r} is not a run's config.json ({e})")
         cfg = dataclasses.replace(cfg, steps=cfg.steps if args.steps is None else args.steps)
         cfg = dataclasses.replace(cfg, physics=physics(parser, cfg.physics, cfg.fitness))
     elif (out / "checkpoints").exists():
@@ -333,6 +342,8 @@ def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
             make_task(args.task)
     except ValueError as e:  # an unknown name, said by its registry
         parser.error(str(e))
+    if not -(2**63) <= args.seed < 2**63:  # what a PRNG key takes
+        parser.error(f"--seed must fit in 64 bits (-2**63 to 2**63 - 1), got {args.seed}")
     for name in POSITIVE:
         value = getattr(args, name)  # None: the default, set by `parse`
         if value is not None and value < (0 if name == "train_steps" else 1):
