@@ -102,6 +102,27 @@ def test_a_resume_of_a_damaged_config_exits_2(damage, capsys, tmp_path):
     assert (out / "config.json").read_text() == text
 
 
+@pytest.mark.parametrize("table", ["garbage", "cut", "other space"])
+def test_a_table_that_is_not_the_spaces_exits_2(table, capsys, tmp_path):
+    """--table naming a file that is not a table, one cut short, or another space's table:
+    exit 2 with why, before anything is written."""
+    from evojax_morph.fitnesses import table as tb
+
+    packaged = tb.TABLES / "bad_walker.npz"
+    path = tmp_path / "t.npz"
+    path.write_bytes({"garbage": b"not a table", "cut": packaged.read_bytes()[:5000],
+                      "other space": packaged.read_bytes()}[table])
+    space = "length_walker" if table == "other space" else "bad_walker"
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--space", space, "--fitness", "table", "--table", str(path),
+                  "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2
+    assert ("of the space 'bad_walker', not 'length_walker'" if table == "other space"
+            else "is not a readable table") in err, err
+    assert not (tmp_path / "run").exists()
+
+
 def test_unwritable_out_and_missing_resume(capsys, tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("")

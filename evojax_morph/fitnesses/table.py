@@ -24,6 +24,7 @@ import dataclasses
 import functools
 import json
 import os
+import zipfile
 from pathlib import Path
 
 import jax
@@ -255,9 +256,15 @@ def check(inputs: Inputs) -> None:
             f"--fitness table: no table at {str(path)!r}; build one with `python -m "
             f"experiments.build_tables --space {inputs.space} --out PATH` and pass --table PATH"
         )
-    built = task_of(path)
-    if inputs.task and inputs.task != built:
-        raise ValueError(_other_task(path, built, inputs.task))
+    try:
+        table = Table.load(path)
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:  # not a table
+        raise ValueError(f"--fitness table: {str(path)!r} is not a readable table ({e})") from None
+    if table.space != inputs.space:
+        raise ValueError(f"--fitness table: the table {str(path)!r} is of the space "
+                         f"{table.space!r}, not {inputs.space!r}")
+    if inputs.task and inputs.task != table.task:
+        raise ValueError(_other_task(path, table.task, inputs.task))
 
 
 def make(space: Space, cfg: FitnessConfig):
