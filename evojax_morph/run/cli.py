@@ -153,12 +153,12 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
             parser.error(f"--resume: no run in {str(out)!r} (no config.json)")
         try:  # a run begun before tasks were named trained under the source's task
             config = {"task": "distance", **json.loads(saved.read_text())}
-            cfg = RunConfig(**config)
+            cfg, default = RunConfig(**config), RunConfig()
             get_space(cfg.space)
             wrong = [f.name for f in dataclasses.fields(RunConfig)
-                     if type(getattr(cfg, f.name)) is not type(getattr(RunConfig(), f.name))
-                     and not (isinstance(getattr(cfg, f.name), int)
-                              and isinstance(getattr(RunConfig(), f.name), float))]
+                     if type(getattr(cfg, f.name)) is not type(getattr(default, f.name))
+                     and not (type(getattr(cfg, f.name)) is int
+                              and type(getattr(default, f.name)) is float)]
             if wrong:
                 raise TypeError(f"wrong type of {', '.join(wrong)}")
         except (ValueError, TypeError) as e:  # cut short, an unknown key, space or type

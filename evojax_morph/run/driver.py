@@ -132,12 +132,17 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
     end = max(step or 0, cfg.steps)  # the step the run ends at
     ahead.collect(_evolve_jobs(run, abstract, step or 0) + confirm_jobs(run, end)
                   + report_jobs(run, best_controllers(cfg, run.p)))
-    step, state, rows, loading = _warm_up(run, step, state, ahead, clock)
-    clock.phase("build_and_m0")
-    evolved = _evolve(run, step, state, rows, ahead, clock, loading)
-    best = confirm_stage(run, evolved, ahead, clock)
-    if run.lead:
-        report_stage(run, evolved, best, clock)
+    try:
+        step, state, rows, loading = _warm_up(run, step, state, ahead, clock)
+        clock.phase("build_and_m0")
+        evolved = _evolve(run, step, state, rows, ahead, clock, loading)
+        best = confirm_stage(run, evolved, ahead, clock)
+        if run.lead:
+            report_stage(run, evolved, best, clock)
+    except OSError:  # a full disk, a folder made read-only: the checkpoints in flight land
+        with contextlib.suppress(Exception):  # first, so the run resumes from the newest
+            run.manager.wait_until_finished()
+        raise
 
 
 def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
@@ -237,39 +242,34 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: 
     bar = tqdm(total=cfg.steps, initial=min(step, cfg.steps), unit="step", dynamic_ncols=True,
                file=sys.stdout, disable=not lead)
     chunks_done, chunk_seconds, dispatch = 0, [], None
-    try:
-        while step < cfg.steps:
-            n = min(cfg.chunk, cfg.steps - step)
-            ahead.wait(f"chunk {n}")
-            if loading is not None:
-                waited = time.perf_counter()
-                loading.result()
-                clock.waits["preload"], loading = round(time.perf_counter() - waited, 2), None
-            chunk_start = time.perf_counter()
-            state, metrics = run.p.agent.chunk(state, n)
-            if dispatch is None:  # when the call returns; to_host then waits for the device
-                dispatch = round(time.perf_counter() - chunk_start, 2)
-            metrics = to_host(metrics)
-            chunk_seconds.append((n, time.perf_counter() - chunk_start))
-            rows += _record_chunk(run, step, n, metrics, writer)
-            step += n
-            chunks_done += 1
-            bar.update(n)
-            bar.set_postfix(reward=f"{rows[-1]['reward_median']:.3g}",
-                            best=f"{rows[-1]['best_fitness']:.3g}")
-            if lead:
-                run.bodies.commit()
-                table = io.StringIO(newline="")
-                w = csv.DictWriter(table, fieldnames=list(rows[0]))
-                w.writeheader()
-                w.writerows(rows)
-                checkpoints.write_atomic(run.out / "metrics.csv", table.getvalue())
-            if chunks_done % cfg.checkpoint_every == 0 or step >= cfg.steps:
-                run.manager.save(step, args=checkpoints.save_args(state))
-    except OSError:  # a full disk, a folder made read-only: the checkpoints in flight land
-        with contextlib.suppress(Exception):  # first, so the run resumes from the newest
-            run.manager.wait_until_finished()
-        raise
+    while step < cfg.steps:
+        n = min(cfg.chunk, cfg.steps - step)
+        ahead.wait(f"chunk {n}")
+        if loading is not None:
+            waited = time.perf_counter()
+            loading.result()
+            clock.waits["preload"], loading = round(time.perf_counter() - waited, 2), None
+        chunk_start = time.perf_counter()
+        state, metrics = run.p.agent.chunk(state, n)
+        if dispatch is None:  # when the call returns; to_host then waits for the device
+            dispatch = round(time.perf_counter() - chunk_start, 2)
+        metrics = to_host(metrics)
+        chunk_seconds.append((n, time.perf_counter() - chunk_start))
+        rows += _record_chunk(run, step, n, metrics, writer)
+        step += n
+        chunks_done += 1
+        bar.update(n)
+        bar.set_postfix(reward=f"{rows[-1]['reward_median']:.3g}",
+                        best=f"{rows[-1]['best_fitness']:.3g}")
+        if lead:
+            run.bodies.commit()
+            table = io.StringIO(newline="")
+            w = csv.DictWriter(table, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+            checkpoints.write_atomic(run.out / "metrics.csv", table.getvalue())
+        if chunks_done % cfg.checkpoint_every == 0 or step >= cfg.steps:
+            run.manager.save(step, args=checkpoints.save_args(state))
     bar.close()
     run.manager.wait_until_finished()
     ranked = draw = None
