@@ -70,8 +70,6 @@ TINY = [
          "the population must be at least 2, got 1"),
         (["--agent", "evolution", "--num-envs", "1"], "it needs at least 2 parallel evolutions"),
         (["--seed", str(2**64)], "--seed must fit in 64 bits"),
-        (["--fitness", "table", "--controllers", "1000"],
-         "--controllers 1000: the table holds 32 results a body, so at most 32"),
     ],
 )
 def test_bad_input_exits_with_2(args, message, capsys, tmp_path):

@@ -129,16 +129,6 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
     classifier = str(Path(args.classifier).resolve()) if args.classifier else ""
     table = str(Path(args.table).resolve()) if args.table else ""
     cfg = dataclasses.replace(cfg, classifier=classifier, table=table)
-    if cfg.fitness == "table" and not args.resume:  # K draws of a body's stored results
-        from evojax_morph.fitnesses import table as table_fitness
-
-        held = table_fitness.Table.load(
-            table_fitness.named_path(Inputs(cfg.space, table=cfg.table))).base
-        for flag, k in (("--controllers", cfg.controllers),
-                        ("--confirm-controllers", cfg.confirm_controllers)):
-            if k > held:
-                parser.error(f"{flag} {k}: the table holds {held} results a body, so at most "
-                             f"{held}")
     out = Path(args.out) if args.out else driver.fresh_run_dir(cfg)
     try:
         out.mkdir(parents=True, exist_ok=True)
