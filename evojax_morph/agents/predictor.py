@@ -1,22 +1,34 @@
 """Predictor-guided evolution: a GNN ensemble learns the fitness of a body from every evaluation
-so far and chooses which mutation each parent gets (BANANAS's idea, White et al. 2021).
+so far and chooses which child each parent gets (BANANAS's idea, White et al. 2021).
 
 Parents are chosen as regularized evolution chooses them (an aging population, tournaments by
 the members' draws: `baselines.make_regularized_evolution`, its first population included);
-what is learned is the mutation. Each step, for each of the N parents, `candidates` valid
-mutations are drawn uniformly and the children they make are scored by an ensemble of
-`ensemble` graph networks, each trained on its own minibatches of the evaluations so far (the
-body log's data: body -> fitness); the child of the highest acquisition is evaluated:
-independent Thompson sampling ("its": the ensemble's mean plus its spread times a standard
-normal draw per child, BANANAS's choice) or an upper confidence bound ("ucb": mean plus
-`kappa` spreads). A child evaluated before (its `morphology.signature` in the data) is chosen
-only when every candidate was (`unseen_first`, BANANAS's removal of duplicates): a greedy
-predictor otherwise sends a parent to the same best-predicted child again and again, and the
-aging population fills with copies of a few bodies (48 distinct bodies in 10,000 evaluations
-on the Length Walker walking table without it; docs/results.md). Before `learning_starts`
-evaluations are stored it mutates at random, as regularized evolution does. Only the evaluated
-children count against a run's budget; the predictor's own compute (training and scoring) is in
-the agent's step, on the clock of every comparison.
+what is learned is the child. Each step, for each of the N parents, `candidates` children are
+drawn: each a walk of 1 to `reach` mutations whose first mutation is distinct among the
+parent's candidates (uniform over the valid ones) and whose others are uniformly random valid
+mutations. They are scored by an ensemble of `ensemble` graph networks, each trained on its
+own minibatches of the evaluations so far (the body log's data: body -> fitness), and the
+child of the highest acquisition is evaluated: independent Thompson sampling ("its": the
+ensemble's mean plus its spread times a standard normal draw per child, BANANAS's choice) or
+an upper confidence bound ("ucb": mean plus `kappa` spreads). A child evaluated before (its
+`morphology.signature` in the data) is chosen only when every candidate was (`unseen_first`,
+BANANAS's removal of duplicates): a greedy predictor otherwise sends a parent to the same
+best-predicted child again and again, and the aging population fills with copies of a few
+bodies (48 distinct bodies in 10,000 evaluations on the Length Walker walking table without
+it; docs/results.md).
+
+`reach` > 1 looks past a parent's neighbours: a child may be several mutations away, so the
+search can cross bodies it predicts worse on its way to one it predicts better, as regularized
+evolution's random mutations do by chance. The walk's last mutation is the step's action; the
+body before it stands in the step as the parent (the body log's "parent"; it is not
+evaluated). `prior` > 0 adds to each member a fixed, untrained network of its own times
+`prior` (randomized prior functions, Osband et al. 2018): the members disagree where no data
+reach, however alike their training makes them, so Thompson sampling keeps exploring there.
+
+Before `learning_starts` evaluations are stored it mutates at random, as regularized evolution
+does. Only the evaluated children count against a run's budget; the predictor's own compute
+(training and scoring, both in the step's selection, `next_evo`) is in the agent's step, on
+the clock of every comparison.
 
 With a predictor that knows nothing the choice is a random valid mutation, so the agent is
 regularized evolution plus what the predictor learned: what it adds is measured against that.
@@ -35,8 +47,8 @@ from flax import struct
 from evojax_morph.agents import baselines
 from evojax_morph.agents.base import Policy, RunOptions
 from evojax_morph.agents.gnn import TreeGNN, node_features
-from evojax_morph.mdp import NEG, EvolutionEnv, Observation, random_valid_actions
-from evojax_morph.morphology import Morphology, signature
+from evojax_morph.mdp import NEG, EvolutionEnv, EvoState, Observation, random_valid_actions
+from evojax_morph.morphology import Morphology, signature, tree_select
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,7 +58,9 @@ class PredictorConfig:
     hidden: int = 32  # GNN width
     layers: int = 2  # graph convolution rounds
     ensemble: int = 5  # networks, each initialised and trained on minibatches of its own
-    candidates: int = 16  # valid mutations of each parent scored per step
+    candidates: int = 16  # children of each parent scored per step
+    reach: int = 1  # mutations a child may be from its parent (1 to reach, uniform)
+    prior: float = 0.0  # the scale of each member's fixed random prior network (0: none)
     acquisition: str = "its"  # "its" (Thompson, per child) or "ucb" (mean + kappa spreads)
     kappa: float = 1.0  # ucb only
     unseen_first: bool = True  # a child evaluated before only when every candidate was
@@ -70,8 +84,9 @@ class PredictorConfig:
         if self.acquisition not in ("its", "ucb"):
             raise ValueError(f"predictor: acquisition must be 'its' or 'ucb', got "
                              f"{self.acquisition!r}")
-        if self.ensemble < 2 or self.candidates < 1:
-            raise ValueError("predictor: an ensemble of at least 2 and at least 1 candidate")
+        if self.ensemble < 2 or self.candidates < 1 or self.reach < 1 or self.prior < 0:
+            raise ValueError("predictor: an ensemble of at least 2, at least 1 candidate, a "
+                             "reach of at least 1 and a prior of at least 0")
 
     @classmethod
     def for_run(cls, env: EvolutionEnv, run: RunOptions) -> PredictorConfig:
@@ -114,9 +129,13 @@ class Data:
 @struct.dataclass
 class PredictorLearner:
     params: dict  # (E, ...) the ensemble
+    prior: dict  # (E, ...) each member's fixed prior network (scaled by `prior`; 0: unused)
     opt_state: optax.OptState  # (E, ...)
     data: Data
     pop: baselines.Population  # regularized evolution's members
+    action: jax.Array  # (N,) int32: the last mutation of each parent's chosen walk
+    chose: jax.Array  # () bool: `action` was chosen by the predictor (else: act at random)
+    metrics: dict  # the last selection's "loss" and "spread"
 
 
 def make_predictor(space, cfg: PredictorConfig):
@@ -140,15 +159,20 @@ def make_predictor(space, cfg: PredictorConfig):
 
 
 def make_policy(env: EvolutionEnv, cfg: PredictorConfig) -> Policy:
-    """Acting: the best child of `cfg.candidates` random valid mutations by the acquisition;
-    learning: the ensemble's minibatch steps on the evaluations so far; parents: regularized
-    evolution's."""
+    """Selection (`next_evo`): store the children's evaluations, train the ensemble on them,
+    choose the parents as regularized evolution does, then each parent's child by the
+    acquisition over `cfg.candidates` walks; acting takes the walk's last mutation."""
     cfg.check(env.num_envs)
     space, n = env.space, env.num_envs
     nm = space.num_mutations
-    init_net, predict = make_predictor(space, cfg)
+    init_net, predict_raw = make_predictor(space, cfg)
     parents = baselines.make_regularized_evolution(env, cfg.parents())
     optimizer = optax.adam(cfg.learning_rate)
+    mutate = jax.vmap(lambda m, a: space.mutate(m, a // nm, a % nm))  # over a flat batch
+
+    def predict(params, prior, morphs):
+        out = predict_raw(params, morphs)
+        return out + cfg.prior * predict_raw(prior, morphs) if cfg.prior else out
 
     def normaliser(data: Data):
         filled = jnp.arange(cfg.buffer_size) < data.size
@@ -159,76 +183,44 @@ def make_policy(env: EvolutionEnv, cfg: PredictorConfig) -> Policy:
 
     def init(keys, obs: Observation) -> PredictorLearner:
         one = jax.tree.map(lambda x: x[0], obs.morph)
-        params = init_net(keys[0], one)
+        key_net, key_prior = jax.random.split(keys[0])
+        params = init_net(key_net, one)
         data = Data(jax.tree.map(lambda x: jnp.zeros((cfg.buffer_size, *x.shape), x.dtype), one),
                     jnp.zeros(cfg.buffer_size), jnp.zeros((cfg.buffer_size, 2), jnp.uint32),
                     jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32))
-        return PredictorLearner(params, jax.vmap(optimizer.init)(params), data,
-                                parents.init(keys[1:], obs))
+        return PredictorLearner(params, init_net(key_prior, one),
+                                jax.vmap(optimizer.init)(params), data,
+                                parents.init(keys[1:], obs), jnp.zeros(n, jnp.int32),
+                                jnp.zeros((), bool), {"loss": jnp.zeros(()),
+                                                      "spread": jnp.zeros(())})
 
-    def act(learner: PredictorLearner, keys, obs: Observation, step):
-        del step
-        key_cand, key_its, key_rand = keys
-        # CANDIDATES: distinct valid mutations of each parent (Gumbel top-k over the mask)
-        gumbel = jax.random.gumbel(key_cand, obs.mask.shape)
-        k = min(cfg.candidates, obs.mask.shape[-1])
-        score, cand = jax.lax.top_k(jnp.where(obs.mask, gumbel, NEG), k)  # (N, k)
-        valid = score > NEG / 2
-        kids = jax.vmap(lambda m, a: jax.vmap(lambda a: space.mutate(m, a // nm, a % nm))(a))(
-            obs.morph, cand)
-        # ACQUISITION over the ensemble's predictions
-        pred = predict(learner.params, kids)  # (E, N, k)
-        mean, spread = pred.mean(0), pred.std(0)
-        if cfg.acquisition == "its":
-            value = mean + spread * jax.random.normal(key_its, mean.shape)
-        else:
-            value = mean + cfg.kappa * spread
-        if cfg.unseen_first:  # SEEN: a candidate's signature among the evaluations stored
-            sig = jax.vmap(jax.vmap(signature))(kids)  # (N, k, 2)
-            data = learner.data
-            filled = jnp.arange(cfg.buffer_size) < data.size
-            seen = jnp.any((sig[:, :, None] == data.signature).all(-1) & filled, -1)  # (N, k)
-            unseen = valid & ~seen
-            valid = jnp.where(unseen.any(1, keepdims=True), unseen, valid)
-        pick = jnp.take_along_axis(cand, jnp.argmax(jnp.where(valid, value, NEG), 1)[:, None],
-                                   1)[:, 0]
-        ready = learner.data.size >= cfg.learning_starts
-        action = jnp.where(ready, pick, random_valid_actions(key_rand, obs.mask))
-        return action.astype(jnp.int32), {"spread": jnp.mean(spread)}
-
-    def next_evo(env, learner: PredictorLearner, keys, parents_evo, children, first, done):
-        # STORE every child's evaluation
-        data = learner.data
+    def store(data: Data, children: EvoState) -> Data:
         idx = (data.pos + jnp.arange(n)) % cfg.buffer_size
-        data = Data(jax.tree.map(lambda s, x: s.at[idx].set(x), data.morph, children.morph),
+        return Data(jax.tree.map(lambda s, x: s.at[idx].set(x), data.morph, children.morph),
                     data.fitness.at[idx].set(children.fitness),
                     data.signature.at[idx].set(jax.vmap(signature)(children.morph)),
                     (data.pos + n) % cfg.buffer_size, jnp.minimum(data.size + n, cfg.buffer_size))
-        pop, evo = parents.next_evo(env, learner.pop, keys, parents_evo, children, first, done)
-        return learner.replace(data=data, pop=pop), evo
 
-    def learn(learner: PredictorLearner, keys, transition, step):
-        del transition, step
-        data = learner.data
+    def train(learner: PredictorLearner, data: Data, key):
         mean, scale = normaliser(data)
 
-        def loss_fn(params, idx):
+        def loss_fn(params, prior, idx):
             target = (data.fitness[idx] - mean) / scale
             morphs = jax.tree.map(lambda x: x[idx], data.morph)
-            out = predict(jax.tree.map(lambda x: x[None], params), morphs)[0]
-            return jnp.mean((out - target) ** 2)
+            one = lambda p: jax.tree.map(lambda x: x[None], p)  # noqa: E731
+            return jnp.mean((predict(one(params), one(prior), morphs)[0] - target) ** 2)
 
         def update(carry, key):
             params, opt_state = carry
 
-            def member(params, opt_state, key):  # its own minibatch: a bootstrap of the data
+            def member(params, prior, opt_state, key):  # its own minibatch: a bootstrap
                 idx = jax.random.randint(key, (cfg.batch_size,), 0, jnp.maximum(data.size, 1))
-                loss, grads = jax.value_and_grad(loss_fn)(params, idx)
+                loss, grads = jax.value_and_grad(loss_fn)(params, prior, idx)
                 updates, opt_state = optimizer.update(grads, opt_state, params)
                 return optax.apply_updates(params, updates), opt_state, loss
 
             new_params, new_opt, loss = jax.vmap(member)(
-                params, opt_state, jax.random.split(key, cfg.ensemble))
+                params, learner.prior, opt_state, jax.random.split(key, cfg.ensemble))
             ready = data.size >= min(cfg.learning_starts, cfg.batch_size)
             keep = lambda new, old: jnp.where(ready, new, old)  # noqa: E731
             return (jax.tree.map(keep, new_params, params),
@@ -236,16 +228,85 @@ def make_policy(env: EvolutionEnv, cfg: PredictorConfig) -> Policy:
 
         (params, opt_state), losses = jax.lax.scan(
             update, (learner.params, learner.opt_state),
-            jax.random.split(keys[0], cfg.updates_per_step))
-        return learner.replace(params=params, opt_state=opt_state), {"loss": losses.mean()}
+            jax.random.split(key, cfg.updates_per_step))
+        return params, opt_state, losses.mean()
+
+    def walks(key, morph: Morphology):
+        """(N * k) candidate walks from the N parents `morph`, k = min(candidates, actions):
+        (the body before each walk's last mutation, that mutation, the child, valid)."""
+        key_first, key_len, *key_steps = jax.random.split(key, cfg.reach + 1)
+        mask = jax.vmap(space.action_mask)(morph).reshape(n, -1)
+        k = min(cfg.candidates, mask.shape[-1])
+        # the first mutations: distinct per parent (Gumbel top-k over its mask)
+        score, action = jax.lax.top_k(jnp.where(mask, jax.random.gumbel(key_first, mask.shape),
+                                                NEG), k)
+        valid, action = (score > NEG / 2).reshape(-1), action.reshape(-1)
+        body = jax.tree.map(lambda x: jnp.repeat(x, k, 0), morph)  # (N * k, ...)
+        length = jax.random.randint(key_len, (n * k,), 1, cfg.reach + 1)
+        for i, key_step in enumerate(key_steps[: cfg.reach - 1], start=1):  # further ones
+            walked = mutate(body, action)
+            step_mask = jax.vmap(space.action_mask)(walked).reshape(n * k, -1)
+            nxt = random_valid_actions(key_step, step_mask)
+            go = i < length
+            valid &= ~go | jnp.take_along_axis(step_mask, nxt[:, None], 1)[:, 0]
+            body, action = tree_select(go, walked, body), jnp.where(go, nxt, action)
+        return body, action, mutate(body, action), valid
+
+    def choose(learner: PredictorLearner, params, data: Data, keys, morph: Morphology):
+        """Each parent's chosen walk (the body before its last mutation, that mutation) and
+        the ensemble's mean spread over the candidates."""
+        key_walks, key_its = keys
+        body, action, kids, valid = walks(key_walks, morph)
+        k = action.shape[0] // n
+        pred = predict(params, learner.prior, kids).reshape(-1, n, k)  # (E, N, k)
+        mean, spread = pred.mean(0), pred.std(0)
+        if cfg.acquisition == "its":
+            value = mean + spread * jax.random.normal(key_its, mean.shape)
+        else:
+            value = mean + cfg.kappa * spread
+        sig = jax.vmap(signature)(kids).reshape(n, k, 2)
+        valid = valid.reshape(n, k)
+        # A BODY ONCE: a candidate equal to an earlier one of its parent's is dropped
+        same = (sig[:, :, None] == sig[:, None, :]).all(-1) & valid[:, None, :]
+        valid &= ~jnp.any(jnp.tril(same, -1), -1)
+        if cfg.unseen_first:  # SEEN: a candidate's signature among the evaluations stored
+            filled = jnp.arange(cfg.buffer_size) < data.size
+            seen = jnp.any((sig[:, :, None] == data.signature).all(-1) & filled, -1)  # (N, k)
+            unseen = valid & ~seen
+            valid = jnp.where(unseen.any(1, keepdims=True), unseen, valid)
+        pick = jnp.arange(n) * k + jnp.argmax(jnp.where(valid, value, NEG), 1)
+        return jax.tree.map(lambda x: x[pick], body), action[pick], jnp.mean(spread)
+
+    def next_evo(env, learner: PredictorLearner, keys, parents_evo, children, first, done):
+        key_pop, key_train, *key_choose = keys
+        data = store(learner.data, children)  # STORE every child's evaluation
+        params, opt_state, loss = train(learner, data, key_train)  # LEARN from them
+        pop, evo = parents.next_evo(env, learner.pop, key_pop[None], parents_evo, children,
+                                    first, done)  # the PARENTS: regularized evolution's
+        body, action, spread = choose(learner, params, data, key_choose, evo.morph)
+        chose = data.size >= cfg.learning_starts  # the CHILD: the acquisition's best walk
+        evo = evo.replace(morph=tree_select(jnp.broadcast_to(chose, (n,)), body, evo.morph))
+        return learner.replace(params=params, opt_state=opt_state, data=data, pop=pop,
+                               action=action, chose=chose,
+                               metrics={"loss": loss, "spread": spread}), evo
+
+    def act(learner: PredictorLearner, keys, obs: Observation, step):
+        del step
+        action = jnp.where(learner.chose, learner.action, random_valid_actions(keys[0], obs.mask))
+        return action.astype(jnp.int32), {}
+
+    def learn(learner: PredictorLearner, keys, transition, step):
+        del keys, transition, step  # learning is in the selection, `next_evo`
+        return learner, learner.metrics
 
     def scores(learner: PredictorLearner, obs: Observation) -> jax.Array:
         """(N, num_actions): the ensemble's mean prediction of each valid action's child."""
         actions = jnp.arange(obs.mask.shape[-1])
         kids = jax.vmap(lambda m: jax.vmap(lambda a: space.mutate(m, a // nm, a % nm))(
             actions))(obs.morph)
-        return jnp.where(obs.mask, predict(learner.params, kids).mean(0), NEG)
+        return jnp.where(obs.mask, predict(learner.params, learner.prior, kids).mean(0), NEG)
 
-    # keys: init (net, population), act (candidates, its, random), learn, next_evo (parents)
-    return Policy(keys=(2, 3, 1, 1), init=init, act=act, learn=learn, scores=scores,
+    # keys: init (nets, population), act (random), learn (none), next_evo (parents, training,
+    # walks, its)
+    return Policy(keys=(2, 1, 0, 4), init=init, act=act, learn=learn, scores=scores,
                   next_evo=next_evo)
