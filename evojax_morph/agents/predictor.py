@@ -10,7 +10,11 @@ mutations. They are scored by an ensemble of `ensemble` graph networks, each tra
 own minibatches of the evaluations so far (the body log's data: body -> fitness), and the
 child of the highest acquisition is evaluated: independent Thompson sampling ("its": the
 ensemble's mean plus its spread times a standard normal draw per child, BANANAS's choice) or
-an upper confidence bound ("ucb": mean plus `kappa` spreads). A child evaluated before (its
+an upper confidence bound ("ucb": mean plus `kappa` spreads). A body among a parent's
+candidates more than once (two mutations that make the same body, two walks that meet) is
+scored once: with a Thompson draw for each copy it would win by its number of draws (on the
+Length Walker walking table that bias alone doubled the first design's regret, 155 against
+315: docs/results.md). A child evaluated before (its
 `morphology.signature` in the data) is chosen only when every candidate was (`unseen_first`,
 BANANAS's removal of duplicates): a greedy predictor otherwise sends a parent to the same
 best-predicted child again and again, and the aging population fills with copies of a few
@@ -53,14 +57,16 @@ from evojax_morph.morphology import Morphology, signature, tree_select
 
 @dataclasses.dataclass(frozen=True)
 class PredictorConfig:
-    """Predictor-guided evolution's settings; its parents' are regularized evolution's."""
+    """Predictor-guided evolution's settings; its parents' are regularized evolution's. `reach`
+    and `prior` are the tuning's choice (experiments/frozen_settings.json, four settings on
+    the Bad Walker's distance table); reach 1 and prior 0 are the first design's."""
 
     hidden: int = 32  # GNN width
     layers: int = 2  # graph convolution rounds
     ensemble: int = 5  # networks, each initialised and trained on minibatches of its own
     candidates: int = 16  # children of each parent scored per step
-    reach: int = 1  # mutations a child may be from its parent (1 to reach, uniform)
-    prior: float = 0.0  # the scale of each member's fixed random prior network (0: none)
+    reach: int = 3  # mutations a child may be from its parent (1 to reach, uniform)
+    prior: float = 1.0  # the scale of each member's fixed random prior network (0: none)
     acquisition: str = "its"  # "its" (Thompson, per child) or "ucb" (mean + kappa spreads)
     kappa: float = 1.0  # ucb only
     unseen_first: bool = True  # a child evaluated before only when every candidate was
@@ -140,7 +146,9 @@ class PredictorLearner:
 
 def make_predictor(space, cfg: PredictorConfig):
     """(init, predict): init(key, morph) -> (E, ...) params from one body; predict(params,
-    morphs (..., max_nodes)) -> (E, ...) each member's predicted (normalised) fitness."""
+    prior, morphs (..., max_nodes)) -> (E, ...) each member's predicted (normalised) fitness,
+    its trained network plus `cfg.prior` times its fixed prior network (`prior`: init's params
+    of another key)."""
     net = FitnessNet(cfg.hidden, cfg.layers)
     num_kinds, num_sites = len(space.kind_names), len(space.site_names)
     feats = lambda m: node_features(m, jnp.zeros(()), num_kinds, num_sites)  # noqa: E731
@@ -155,7 +163,11 @@ def make_predictor(space, cfg: PredictorConfig):
         out = jax.vmap(lambda m: net.apply(params, m, feats(m)))(flat)
         return out.reshape(lead)
 
-    return init, jax.vmap(one, (0, None))
+    def predict(params, prior, morphs):
+        out = jax.vmap(one, (0, None))(params, morphs)
+        return out + cfg.prior * jax.vmap(one, (0, None))(prior, morphs) if cfg.prior else out
+
+    return init, predict
 
 
 def make_policy(env: EvolutionEnv, cfg: PredictorConfig) -> Policy:
@@ -165,14 +177,10 @@ def make_policy(env: EvolutionEnv, cfg: PredictorConfig) -> Policy:
     cfg.check(env.num_envs)
     space, n = env.space, env.num_envs
     nm = space.num_mutations
-    init_net, predict_raw = make_predictor(space, cfg)
+    init_net, predict = make_predictor(space, cfg)
     parents = baselines.make_regularized_evolution(env, cfg.parents())
     optimizer = optax.adam(cfg.learning_rate)
     mutate = jax.vmap(lambda m, a: space.mutate(m, a // nm, a % nm))  # over a flat batch
-
-    def predict(params, prior, morphs):
-        out = predict_raw(params, morphs)
-        return out + cfg.prior * predict_raw(prior, morphs) if cfg.prior else out
 
     def normaliser(data: Data):
         filled = jnp.arange(cfg.buffer_size) < data.size
