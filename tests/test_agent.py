@@ -220,8 +220,10 @@ class RootOnlyEnv(EvolutionEnv):
 def test_every_agent_shapes_masks_and_one_trace(name):
     """Shapes, valid actions only, and one trace of the step however the bodies change.
 
-    Constructor's root has 6 free slots: two chunks of 2 steps never fill it."""
-    n, steps = 4, 2
+    Constructor's root has 6 free slots: two chunks of 1 step never give a parent a full one
+    (a parent holds at most 4 limbs, regularized evolution's first walks; the predictor's
+    walks add up to `reach` limbs to a child, so 4 steps could fill it)."""
+    n, steps = 4, 1
     p = build(
         RunConfig(space="constructor", fitness="predefined", agent="random", num_envs=n, horizon=3)
     )

@@ -239,32 +239,39 @@ def make_policy(env: EvolutionEnv, cfg: PredictorConfig) -> Policy:
             jax.random.split(key, cfg.updates_per_step))
         return params, opt_state, losses.mean()
 
-    def walks(key, morph: Morphology):
-        """(N * k) candidate walks from the N parents `morph`, k = min(candidates, actions):
-        (the body before each walk's last mutation, that mutation, the child, valid)."""
+    def walks(key, parents: EvoState):
+        """(N * k) candidate walks from the N `parents`, k = min(candidates, actions): (the
+        body before each walk's last mutation, that mutation, the child, valid). Valid
+        mutations are the env's (`env.observe`'s mask: an env may allow fewer than its space)."""
         key_first, key_len, *key_steps = jax.random.split(key, cfg.reach + 1)
-        mask = jax.vmap(space.action_mask)(morph).reshape(n, -1)
+        mask = env.observe(parents).mask  # (N, A)
         k = min(cfg.candidates, mask.shape[-1])
+
+        def mask_of(body):  # (N * k, A): the env's mask of N x k bodies, k at a time
+            by_slot = jax.tree.map(lambda x: x.reshape(n, k, *x.shape[1:]), body)
+            masks = jax.vmap(lambda m: env.observe(parents.replace(morph=m)).mask, (0,))(
+                jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), by_slot))  # (k, N, A)
+            return jnp.swapaxes(masks, 0, 1).reshape(n * k, -1)
+
         # the first mutations: distinct per parent (Gumbel top-k over its mask)
         score, action = jax.lax.top_k(jnp.where(mask, jax.random.gumbel(key_first, mask.shape),
                                                 NEG), k)
         valid, action = (score > NEG / 2).reshape(-1), action.reshape(-1)
-        body = jax.tree.map(lambda x: jnp.repeat(x, k, 0), morph)  # (N * k, ...)
+        body = jax.tree.map(lambda x: jnp.repeat(x, k, 0), parents.morph)  # (N * k, ...)
         length = jax.random.randint(key_len, (n * k,), 1, cfg.reach + 1)
         for i, key_step in enumerate(key_steps[: cfg.reach - 1], start=1):  # further ones
             walked = mutate(body, action)
-            step_mask = jax.vmap(space.action_mask)(walked).reshape(n * k, -1)
+            step_mask = mask_of(walked)
             nxt = random_valid_actions(key_step, step_mask)
-            go = i < length
-            valid &= ~go | jnp.take_along_axis(step_mask, nxt[:, None], 1)[:, 0]
+            go = (i < length) & step_mask.any(-1)  # a walk with no valid step left ends here
             body, action = tree_select(go, walked, body), jnp.where(go, nxt, action)
         return body, action, mutate(body, action), valid
 
-    def choose(learner: PredictorLearner, params, data: Data, keys, morph: Morphology):
+    def choose(learner: PredictorLearner, params, data: Data, keys, parents: EvoState):
         """Each parent's chosen walk (the body before its last mutation, that mutation) and
         the ensemble's mean spread over the candidates."""
         key_walks, key_its = keys
-        body, action, kids, valid = walks(key_walks, morph)
+        body, action, kids, valid = walks(key_walks, parents)
         k = action.shape[0] // n
         pred = predict(params, learner.prior, kids).reshape(-1, n, k)  # (E, N, k)
         mean, spread = pred.mean(0), pred.std(0)
@@ -291,7 +298,7 @@ def make_policy(env: EvolutionEnv, cfg: PredictorConfig) -> Policy:
         params, opt_state, loss = train(learner, data, key_train)  # LEARN from them
         pop, evo = parents.next_evo(env, learner.pop, key_pop[None], parents_evo, children,
                                     first, done)  # the PARENTS: regularized evolution's
-        body, action, spread = choose(learner, params, data, key_choose, evo.morph)
+        body, action, spread = choose(learner, params, data, key_choose, evo)
         chose = data.size >= cfg.learning_starts  # the CHILD: the acquisition's best walk
         evo = evo.replace(morph=tree_select(jnp.broadcast_to(chose, (n,)), body, evo.morph))
         return learner.replace(params=params, opt_state=opt_state, data=data, pop=pop,
