@@ -55,7 +55,7 @@ from evojax_morph.run.pipeline import RunConfig, agent_config, build
 from evojax_morph.spaces import make_space
 from experiments.common import band, holm, save
 
-RL = ("ddqn", "dqn", "qrdqn", "a2c", "predictor")  # the learned designs
+RL = ("ddqn", "dqn", "qrdqn", "bootdqn", "a2c", "predictor")  # the learned designs
 RULES = ("draw", "confirmed", "confirmed_early")  # what a run returns: the module's docstring
 BASELINES = ("regularized_evolution", "evolution", "random")
 BOOT = 10_000  # bootstrap resamples
@@ -263,9 +263,10 @@ def effect(a, b, true, table_means, rng) -> dict:
 
 
 def pairs(methods) -> list[tuple[str, str]]:
-    """The comparisons: every RL agent against every baseline (plain DQN also against
-    Double-DQN), and the baselines against each other, in that order."""
-    out = [(a, b) for a in RL for b in (*BASELINES, *(("ddqn",) if a == "dqn" else ()))]
+    """The comparisons: every RL agent against every baseline (plain and bootstrapped DQN also
+    against Double-DQN), and the baselines against each other, in that order."""
+    out = [(a, b) for a in RL
+           for b in (*BASELINES, *(("ddqn",) if a in ("dqn", "bootdqn") else ()))]
     out += [(a, b) for i, a in enumerate(BASELINES) for b in BASELINES[i + 1:]]
     return [(a, b) for a, b in out if a in methods and b in methods]
 

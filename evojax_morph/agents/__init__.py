@@ -37,6 +37,7 @@ _REGISTRY: dict[str, AgentKind] = {k.name: k for k in (
     AgentKind("ddqn", dqn.DQNConfig, dqn.make_policy),
     AgentKind("dqn", dqn.PlainDQNConfig, dqn.make_policy),
     AgentKind("qrdqn", qrdqn.QRDQNConfig, qrdqn.make_policy),
+    AgentKind("bootdqn", dqn.BootstrappedDQNConfig, dqn.make_policy),
     AgentKind("a2c", a2c.A2CConfig, a2c.make_policy),
     AgentKind("random", None, baselines.make_random),
     AgentKind("evolution", None, baselines.make_evolution, baselines.check_evolution),

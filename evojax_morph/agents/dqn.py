@@ -2,6 +2,11 @@
 
 `DQNConfig(double=False)` (the registered agent "dqn") is plain DQN (Mnih et al. 2015): the
 target network both picks and values the next action, the max that Double Q-learning corrects.
+`BootstrappedDQNConfig` (the agent "bootdqn") is bootstrapped DQN (Osband et al. 2016, deep
+exploration): `heads` Q-value heads on one GNN, each parallel evolution greedy on a head drawn
+at its episode's start (no epsilon), each transition training a head with probability
+`bootstrap`, so the heads disagree where the data are few and an episode follows one of them
+through.
 
 Acts epsilon-greedily over valid actions, stores every transition in a ring buffer inside the
 jitted state and takes `updates_per_step` minibatch steps per environment step; the shared loop
@@ -43,6 +48,8 @@ class DQNConfig:
     reward_scale: float = 1.0  # rewards are multiplied by this before learning
     max_grad_norm: float = 10.0
     double: bool = True  # Double Q-learning's target; False: plain DQN's max over the target net
+    heads: int = 1  # Q-value heads (bootstrapped DQN: more than 1)
+    bootstrap: float = 0.5  # heads > 1: the chance a transition trains a head
 
     @classmethod
     def for_run(cls, env: EvolutionEnv, run: RunOptions) -> DQNConfig:
@@ -60,6 +67,22 @@ class PlainDQNConfig(DQNConfig):
     double: bool = False
 
 
+@dataclasses.dataclass(frozen=True)
+class BootstrappedDQNConfig(DQNConfig):
+    """Bootstrapped DQN's settings (the agent "bootdqn"): 10 heads, each transition in about
+    half of their data sets, greedy on an episode's head without epsilon."""
+
+    heads: int = 10
+    epsilon_start: float = 0.0
+    epsilon_end: float = 0.0
+
+    @classmethod
+    def for_run(cls, env: EvolutionEnv, run: RunOptions) -> BootstrappedDQNConfig:
+        """`DQNConfig.for_run`'s settings, without its epsilon (the heads explore)."""
+        return dataclasses.replace(super().for_run(env, run), epsilon_start=0.0,
+                                   epsilon_end=0.0)
+
+
 @struct.dataclass
 class Buffer:
     """A ring buffer of transitions inside the jitted state."""
@@ -69,6 +92,7 @@ class Buffer:
     reward: jax.Array  # (C,)
     next_obs: Observation  # (C, ...)
     terminal: jax.Array  # (C,) bool
+    heads: jax.Array  # (C, H) bool: the heads each transition trains
     pos: jax.Array  # () int32: next slot to write
     size: jax.Array  # () int32: slots filled
 
@@ -79,6 +103,7 @@ class DQNLearner:
     target_params: dict
     opt_state: optax.OptState
     buffer: Buffer
+    head: jax.Array  # (N,) int32: the head each parallel evolution follows this episode
 
 
 def double_q_target(reward, terminal, discount, q_next_online, q_next_target, next_mask):
@@ -136,10 +161,12 @@ def replay_policy(env: EvolutionEnv, cfg: DQNConfig, init_net, values_fn, loss_f
       env: the environment (its observations size the buffer).
       cfg: the DQN settings (a `DQNConfig` or a subclass).
       init_net: init_net(key, obs) -> the network's params (`q_network`).
-      values_fn: values_fn(params, obs) -> (N, num_actions) action values: acting is
-        epsilon-greedy on their masked argmax, and they are the agent's scores.
+      values_fn: values_fn(params, obs) -> (N, num_actions, cfg.heads) action values:
+        acting is epsilon-greedy on the masked argmax of an evolution's head, and their mean
+        over heads is the agent's scores.
       loss_fn: loss_fn(params, target_params, batch) -> () loss of a minibatch
-        (obs, action, reward, next_obs, terminal), each with a leading (batch_size,) axis.
+        (obs, action, reward, next_obs, terminal, heads), each with a leading (batch_size,)
+        axis (heads: (batch_size, cfg.heads) bool, the heads a transition trains).
     """
     optimizer = optax.chain(
         optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate)
@@ -155,21 +182,34 @@ def replay_policy(env: EvolutionEnv, cfg: DQNConfig, init_net, values_fn, loss_f
             reward=jnp.zeros(cap),
             next_obs=jax.tree.map(empty, obs),
             terminal=jnp.zeros(cap, bool),
+            heads=jnp.zeros((cap, cfg.heads), bool),
             pos=jnp.zeros((), jnp.int32),
             size=jnp.zeros((), jnp.int32),
         )
-        return DQNLearner(params, params, optimizer.init(params), buffer)
+        head = jax.random.randint(jax.random.fold_in(keys[0], 1), (obs.mask.shape[0],), 0,
+                                  cfg.heads)
+        return DQNLearner(params, params, optimizer.init(params), buffer, head)
 
     def act(learner: DQNLearner, keys: jax.Array, obs: Observation, step):
-        """Epsilon-greedy over valid actions only."""
+        """Epsilon-greedy over valid actions only, greedy on each evolution's head."""
         key_eps, key_rand = keys
-        greedy = masked_argmax(values_fn(learner.params, obs), obs.mask)
+        values = jnp.take_along_axis(values_fn(learner.params, obs),
+                                     learner.head[:, None, None], -1)[..., 0]
+        greedy = masked_argmax(values, obs.mask)
         uniform = random_valid_actions(key_rand, obs.mask)
         explore = jax.random.uniform(key_eps, (obs.mask.shape[0],)) < epsilon(cfg, step)
         action = jnp.where(explore, uniform, greedy).astype(jnp.int32)
         return action, {"epsilon": epsilon(cfg, step)}
 
     def learn(learner: DQNLearner, keys: jax.Array, tr: Transition, step):
+        key, head = keys[0], learner.head
+        if cfg.heads > 1:  # a new episode's head; the heads each transition trains
+            key, key_head, key_boot = jax.random.split(key, 3)
+            head = jnp.where(tr.done, jax.random.randint(key_head, head.shape, 0, cfg.heads),
+                             head)
+            trains = jax.random.bernoulli(key_boot, cfg.bootstrap, (len(head), cfg.heads))
+        else:
+            trains = jnp.ones((len(head), 1), bool)
         # STORE
         buf, n = learner.buffer, tr.action.shape[0]
         idx = (buf.pos + jnp.arange(n)) % cfg.buffer_size
@@ -180,6 +220,7 @@ def replay_policy(env: EvolutionEnv, cfg: DQNConfig, init_net, values_fn, loss_f
             reward=buf.reward.at[idx].set(tr.reward * cfg.reward_scale),
             next_obs=jax.tree.map(put, buf.next_obs, tr.next_obs),
             terminal=buf.terminal.at[idx].set(tr.terminated),
+            heads=buf.heads.at[idx].set(trains),
             pos=(buf.pos + n) % cfg.buffer_size,
             size=jnp.minimum(buf.size + n, cfg.buffer_size),
         )
@@ -188,9 +229,8 @@ def replay_policy(env: EvolutionEnv, cfg: DQNConfig, init_net, values_fn, loss_f
         def update(carry, key):
             params, opt_state = carry
             idx = jax.random.randint(key, (cfg.batch_size,), 0, jnp.maximum(buf.size, 1))
-            batch = jax.tree.map(
-                lambda x: x[idx], (buf.obs, buf.action, buf.reward, buf.next_obs, buf.terminal)
-            )
+            batch = jax.tree.map(lambda x: x[idx], (buf.obs, buf.action, buf.reward,
+                                                    buf.next_obs, buf.terminal, buf.heads))
             loss, grads = jax.value_and_grad(loss_fn)(params, learner.target_params, batch)
             updates, new_opt = optimizer.update(grads, opt_state, params)
             ready = buf.size >= cfg.learning_starts
@@ -200,33 +240,30 @@ def replay_policy(env: EvolutionEnv, cfg: DQNConfig, init_net, values_fn, loss_f
 
         (params, opt_state), losses = jax.lax.scan(
             update, (learner.params, learner.opt_state),
-            jax.random.split(keys[0], cfg.updates_per_step),
+            jax.random.split(key, cfg.updates_per_step),
         )
         copy = (step + 1) % cfg.target_period == 0
         target = jax.tree.map(lambda t, p: jnp.where(copy, p, t), learner.target_params, params)
-        return DQNLearner(params, target, opt_state, buf), {"loss": losses.mean()}
+        return DQNLearner(params, target, opt_state, buf, head), {"loss": losses.mean()}
 
     return Policy(keys=(1, 2, 1), init=init, act=act, learn=learn,
-                  scores=lambda learner, obs: values_fn(learner.params, obs))
+                  scores=lambda learner, obs: values_fn(learner.params, obs).mean(-1))
 
 
 def make_policy(env: EvolutionEnv, cfg: DQNConfig) -> Policy:
-    """Double-DQN's acting and learning; scores are the Q-values."""
-    init_net, apply = q_network(env.space, cfg)
-    q_fn = lambda params, obs: apply(params, obs)[..., 0]  # noqa: E731  (N, num_actions)
+    """(Double-, bootstrapped) DQN's acting and learning; scores are the Q-values (their mean
+    over the heads)."""
+    init_net, q_fn = q_network(env.space, cfg, cfg.heads)  # (N, num_actions, heads)
 
     def loss_fn(params, target_params, batch):
-        obs, action, reward, next_obs, terminal = batch
-        q = q_fn(params, obs)
-        q_taken = jnp.take_along_axis(q, action[:, None], -1)[:, 0]
-        target = double_q_target(
-            reward,
-            terminal.astype(q.dtype),
-            cfg.discount,
-            q_fn(params if cfg.double else target_params, next_obs),  # picks a'
-            q_fn(target_params, next_obs),  # values it
-            next_obs.mask,
-        )
-        return jnp.mean(optax.huber_loss(q_taken, jax.lax.stop_gradient(target)))
+        obs, action, reward, next_obs, terminal, trains = batch
+        q = jnp.moveaxis(q_fn(params, obs), -1, 0)  # (H, B, A)
+        q_taken = jnp.take_along_axis(q, action[None, :, None], -1)[..., 0]  # (H, B)
+        q_next = jnp.moveaxis(q_fn(target_params, next_obs), -1, 0)
+        q_pick = jnp.moveaxis(q_fn(params, next_obs), -1, 0) if cfg.double else q_next
+        target = jax.vmap(double_q_target, (None, None, None, 0, 0, None))(
+            reward, terminal.astype(q.dtype), cfg.discount, q_pick, q_next, next_obs.mask)
+        loss = optax.huber_loss(q_taken, jax.lax.stop_gradient(target))  # (H, B)
+        return jnp.sum(loss * trains.T) / jnp.maximum(jnp.sum(trains), 1)
 
     return replay_policy(env, cfg, init_net, q_fn, loss_fn)

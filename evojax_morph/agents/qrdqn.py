@@ -73,10 +73,10 @@ def quantile_huber_loss(z, target, kappa: float = 1.0):
 def make_policy(env: EvolutionEnv, cfg: QRDQNConfig) -> Policy:
     """QR-DQN's acting and learning; scores are the mean quantiles (the Q-values)."""
     init_net, z_fn = dqn.q_network(env.space, cfg, cfg.quantiles)  # (N, A, quantiles)
-    q_fn = lambda params, obs: z_fn(params, obs).mean(-1)  # noqa: E731
+    q_fn = lambda params, obs: z_fn(params, obs).mean(-1, keepdims=True)  # noqa: E731  one head
 
     def loss_fn(params, target_params, batch):
-        obs, action, reward, next_obs, terminal = batch
+        obs, action, reward, next_obs, terminal, _ = batch  # one head: every transition trains it
         z = z_fn(params, obs)
         z_taken = jnp.take_along_axis(z, action[:, None, None], 1)[:, 0]  # (B, N)
         target = quantile_target(

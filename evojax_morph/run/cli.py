@@ -278,18 +278,19 @@ def add_agent_flags(group, defaults: RunConfig) -> None:
         default=defaults.agent,
         choices=agents.list_agents(),
         help="who chooses the mutations: ddqn (Double-DQN), dqn (plain DQN), qrdqn "
-        "(quantile-regression DQN), a2c (actor-critic), predictor (a GNN ensemble that "
-        "learns body -> fitness from every evaluation picks each parent's mutation; parents "
-        "as regularized_evolution's), or the baselines "
+        "(quantile-regression DQN), bootdqn (bootstrapped DQN: 10 Q-heads, an episode greedy "
+        "on one), a2c (actor-critic), predictor (a GNN ensemble that learns body -> fitness "
+        "from every evaluation picks each parent's child among walks of up to 3 mutations; "
+        "parents as regularized_evolution's), or the baselines "
         "random (random mutation walks), evolution ((mu + lambda), its survivors evaluated "
         "again every step and ranked by their mean) and regularized_evolution (aging "
         "evolution: tournaments pick the parents, each child replaces the oldest member)",
     )
     add("--hidden", type=int, default=defaults.hidden, help="width of the agent's GNN")
     add("--explore-steps", type=int, default=defaults.explore_steps,
-        help="ddqn, dqn, qrdqn: environment steps of epsilon annealing")
+        help="ddqn, dqn, qrdqn: environment steps of epsilon annealing (bootdqn: none)")
     add("--learning-starts", type=int, default=defaults.learning_starts,
-        help="ddqn, dqn, qrdqn: transitions stored before learning")
+        help="ddqn, dqn, qrdqn, bootdqn: transitions stored before learning")
     add("--population", type=int, default=defaults.population,
         help="regularized_evolution, predictor: members, at least --num-envs (0: 2 x "
         "--num-envs)")
