@@ -143,7 +143,7 @@ db.close()
 # controllers on it afresh: `em.confirm` evaluates it C = 4 times, each time with a new
 # controller, and keeps them. A body *walks* when it is confirmed at a mean of at least 2 m
 # in the 5 s episode and upright the whole episode in at least 90% of its confirming
-# evaluations, and *moves* otherwise (`locomotion.gait_word`); at 20,000 PPO steps expect one
+# evaluations, and *moves* otherwise (`tasks.gait_word`); at 20,000 PPO steps expect one
 # that moves. `video.render_saved` replays the best of the 4 controllers and writes a GIF,
 # drawn by MuJoCo's renderer where OpenGL works, else by matplotlib.
 
