@@ -76,7 +76,8 @@ def test_bad_input_exits_with_2(args, message, capsys, tmp_path):
     with pytest.raises(SystemExit) as e:
         cli.main(args + ["--out", str(tmp_path / "run")])
     assert e.value.code == 2
-    assert message in capsys.readouterr().err
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and message in err[0] and "--help" in err[1], err  # no usage block
     assert not (tmp_path / "run").exists()  # nothing half-written
 
 

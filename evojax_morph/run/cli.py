@@ -162,10 +162,18 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
     return cfg, out, args.resume, not args.no_gif
 
 
+class Parser(argparse.ArgumentParser):
+    """An argparse parser whose errors are two lines on stderr and exit 2: the reason, and
+    where the flags are listed (argparse's own prints its whole usage block first)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}\n{self.prog}: --help lists the flags\n")
+
+
 def make_parser(defaults: RunConfig) -> argparse.ArgumentParser:
     """The run's flags in groups, their defaults `defaults`' (a RunConfig, GPU defaults
     applied)."""
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="python -m evojax_morph.run",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
