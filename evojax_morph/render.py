@@ -17,10 +17,11 @@ from pathlib import Path
 import jax
 
 from evojax_morph.run import saved_controllers, video
+from evojax_morph.run.cli import Parser
 
 
 def parse(argv) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="python -m evojax_morph.render",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -13,6 +13,7 @@ import jax
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from evojax_morph.run.cli import Parser
 from evojax_morph.spaces import make_space
 from evojax_morph.tame import TameConfig, pick_held_out, pretrain
 
@@ -21,7 +22,7 @@ POSITIVE = ("population", "generations", "epochs", "episodes", "episode_length",
 
 
 def parse(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="python -m evojax_morph.tame",
         description="Train a TAME classifier on a space and save it for "
         "`--fitness tame --classifier DIR`.",
