@@ -37,6 +37,16 @@ class Setup:
     physics: str = "jax"  # the PPO fitness's engine: jax | warp (`evojax_morph.physics.engines`)
 
 
+def agent_overrides(spec: str) -> tuple[dict, dict]:
+    """({method: {field: value}}, what the file says of how they were chosen ({} for JSON)) of
+    --agent-settings: JSON, or a frozen settings file (experiments/frozen_settings.json: its
+    "settings", tuned on its "tuning_table")."""
+    if spec.endswith(".json"):
+        frozen = json.loads(Path(spec).read_text())
+        return frozen["settings"], {k: v for k, v in frozen.items() if k != "settings"}
+    return json.loads(spec or "{}"), {}
+
+
 def add_setup_flags(parser, seeds: int = 3, **defaults):
     d = dataclasses.replace(Setup(), **defaults)
     for f in dataclasses.fields(Setup):

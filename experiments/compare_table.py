@@ -53,7 +53,7 @@ from evojax_morph.fitnesses import FitnessConfig
 from evojax_morph.fitnesses import table as table_fitness
 from evojax_morph.run.pipeline import RunConfig, agent_config, build
 from evojax_morph.spaces import make_space
-from experiments.common import band, holm, save
+from experiments.common import agent_overrides, band, holm, save
 
 RL = ("ddqn", "dqn", "qrdqn", "bootdqn", "a2c", "predictor")  # the learned designs
 RULES = ("draw", "confirmed", "confirmed_early")  # what a run returns: the module's docstring
@@ -80,14 +80,6 @@ class Settings:
     # (experiments/frozen_settings.json: its "settings", tuned on its "tuning_table")
     agent_settings: str = ""
     tag: str = ""  # appended to the data file's name (a tuning variant's)
-
-
-def agent_overrides(s: Settings) -> tuple[dict, dict]:
-    """({method: {field: value}}, what the file says of how they were chosen ({} for JSON))."""
-    if s.agent_settings.endswith(".json"):
-        frozen = json.loads(Path(s.agent_settings).read_text())
-        return frozen["settings"], {k: v for k, v in frozen.items() if k != "settings"}
-    return json.loads(s.agent_settings or "{}"), {}
 
 
 def rows_fn(sigs: np.ndarray):
@@ -151,7 +143,7 @@ def pipeline(method: str, k: int, s: Settings):
                     explore_steps=s.explore_steps, learning_starts=s.learning_starts)
     env = build(dataclasses.replace(cfg, agent="random")).env
     agent_cfg = agent_config(cfg, env)
-    overrides = agent_overrides(s)[0].get(method, {})
+    overrides = agent_overrides(s.agent_settings)[0].get(method, {})
     agent_cfg = dataclasses.replace(agent_cfg, **overrides) if overrides else agent_cfg
     return build(cfg, agent_cfg=agent_cfg), agent_cfg
 
@@ -379,7 +371,8 @@ def freeze(data: Path, out: Path) -> dict:
             for method, st in by["confirmed"].items():
                 if "-" in method:
                     continue
-                overrides = agent_overrides(Settings(**r["settings"]))[0].get(method, {})
+                spec = Settings(**r["settings"]).agent_settings
+                overrides = agent_overrides(spec)[0].get(method, {})
                 candidates.setdefault(method, []).append(
                     {"tag": r["settings"]["tag"], "overrides": overrides, "k": int(k),
                      "mean_regret": st["mean_regret"], "tied": st["indistinguishable"]})
@@ -444,7 +437,8 @@ def main():
                    table=s.table))), "meta": table.meta, "best": float(true.max()),
                    "best_body": table.names[int(true.argmax())]},
                "device": f"{jax.default_backend()}: {jax.devices()[0].device_kind}",
-               "tuning": agent_overrides(s)[1],  # the tuning table and protocol, if frozen
+               # the tuning table and protocol, if frozen
+               "tuning": agent_overrides(s.agent_settings)[1],
                "results": {}}
     if path.exists():
         old = json.loads(path.read_text())

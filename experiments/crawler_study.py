@@ -57,10 +57,10 @@ from evojax_morph.fitnesses import get_fitness
 from evojax_morph.physics import engines
 from evojax_morph.run import saved_controllers, study, video
 from evojax_morph.run.checkpoints import write_atomic
-from evojax_morph.run.pipeline import agent_config, build
+from evojax_morph.run.pipeline import build
 from evojax_morph.tasks import gait_word
 from experiments.build_tables import revision
-from experiments.common import Setup, band, plt, run_config, save
+from experiments.common import Setup, agent_overrides, band, plt, run_config, save
 from experiments.reproduce import COMPARED, compare_effects
 
 CONFIRM_SEED = 63  # every confirming key descends from it (`confirm_keys`)
@@ -94,7 +94,8 @@ def run_part(args, seeds: range, part: Path, deadline: float) -> dict | None:
     deadline. The agents' states (PART/state.pkl, hundreds of MB on the Crawler) stay where
     the call ran."""
     cfg = run_config(args.methods[0], setup_of(args))
-    methods, p = study.methods_from(cfg, args.methods)
+    methods, p = study.methods_from(cfg, args.methods,
+                                    overrides=agent_overrides(args.agent_settings)[0])
     s = study.make_study(methods, len(seeds))
     preload = engines.registered(cfg.physics).preload  # Warp's kernels, while compiling
     res = study.run_study(s, seed_keys(seeds), args.steps, args.chunk,
@@ -116,7 +117,8 @@ def run_part(args, seeds: range, part: Path, deadline: float) -> dict | None:
         for i, seed in enumerate(seeds):
             mine = [(b, c) for b, c in zip(bodies, confirmed["found"], strict=True)
                     if (b["method"], b["seed"]) == (m.name, seed)]
-            settings = agent_config(run_config(m.name, setup_of(args)), m.env)
+            settings = study.settings_of(run_config(m.name, setup_of(args)), m.name, m.env,
+                                         agent_overrides(args.agent_settings)[0])
             runs.append({
                 "method": m.name, "seed": seed,
                 "agent_settings": dataclasses.asdict(settings) if settings is not None else {},
@@ -300,6 +302,8 @@ def summary(parts: list[dict], best: dict, args, start: str) -> dict:
                     "train_steps": args.train_steps if trains else None,
                     "inheritance": trains},
         "physics": args.physics, "agents": list(args.methods), "seeds": len(seeds),
+        "agent_settings": args.agent_settings or None,  # over the run's defaults
+        "tuning": agent_overrides(args.agent_settings)[1],  # the tuning table, if frozen
         "seed_indices": seeds, "evaluations_per_run": n * args.steps,
         "start_evaluations_per_run": n, "num_envs": n, "steps": args.steps, "chunk": args.chunk,
         "parts": [{k: p[k] for k in ("seeds", "evaluations_per_call", "evaluations_per_second",
@@ -375,6 +379,10 @@ def main(argv: list[str] | None = None) -> int:
     add("--train-steps", type=int, default=50_000, help="PPO steps an evaluation")
     add("--physics", default="jax", help="the fitness's engine: jax | warp")
     add("--hidden", type=int, default=64, help="the agents' GNN width")
+    add("--agent-settings", default="", help="{method: {field: value}} over the run's "
+        "defaults: JSON, or a frozen settings file (experiments/frozen_settings.json)")
+    add("--tag", default="", help="appended to the data file's name (OUT/study_SPACE_TASK"
+        "TAG.json)")
     add("--confirm-controllers", type=int, default=16)
     add("--best-controllers", type=int, default=32)
     add("--curve-every", type=int, default=512, help="evaluations between curve points")
@@ -403,7 +411,7 @@ def main(argv: list[str] | None = None) -> int:
     parts = [pickle.loads(f.read_bytes()) for f in sorted(args.data.glob("seeds_*/results.pkl"))]
     space = em.make_space(args.space)
     cfg = build(run_config(args.methods[0], setup_of(args))).fitness  # the confirmations'
-    name = f"study_{args.space}_{parts[0]['task']}"
+    name = f"study_{args.space}_{parts[0]['task']}{args.tag}"
     args.out.mkdir(parents=True, exist_ok=True)  # the best body's video goes there first
     best = confirm_best(space, cfg, [r for p in parts for r in p["runs"]], args,
                         args.out / f"{name}_best")

@@ -37,10 +37,9 @@ from scipy.stats import spearmanr
 from evojax_morph.fitnesses import FitnessConfig
 from evojax_morph.fitnesses import table as table_fitness
 from evojax_morph.spaces import make_space
-from experiments.common import band, save
+from experiments.common import agent_overrides, band, save
 from experiments.compare_table import (
     Settings,
-    agent_overrides,
     pipeline,
     rows_fn,
     settings_from,
@@ -122,7 +121,7 @@ def main():
     name = f"diagnose_{s.space}" + (f"_{Path(s.table).stem.split('_')[-1]}" if s.table else "")
     summary = {"settings": dataclasses.asdict(s), "k": args.k, "task": table.task,
                "device": f"{jax.default_backend()}: {jax.devices()[0].device_kind}",
-               "tuning": agent_overrides(s)[1], "methods": {}}
+               "tuning": agent_overrides(s.agent_settings)[1], "methods": {}}
     for method in args.methods.split(","):
         r = summary["methods"][method] = diagnose(method, s, args.k, true, sigs)
         last = lambda key, r=r: np.nanmean(r[key][-1])  # noqa: E731

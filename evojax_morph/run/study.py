@@ -61,17 +61,24 @@ class Study(NamedTuple):
     evaluations: int
 
 
-def methods_from(cfg: RunConfig, names: Sequence[str], mesh=None) -> tuple[list[Method],
-                                                                          Pipeline]:
+def methods_from(cfg: RunConfig, names: Sequence[str], mesh=None,
+                 overrides: dict | None = None) -> tuple[list[Method], Pipeline]:
     """(methods, pipeline): each agent of `names` as `run` builds it under `cfg` (its
-    settings from `cfg`, `pipeline.agent_config`), all on the env of cfg.num_envs evolutions
-    of the pipeline `build` makes of `cfg` with the first agent (its space, fitness config and
-    batched fitness, split across `mesh`)."""
+    settings from `cfg`, `pipeline.agent_config`, then `overrides`' {name: {field: value}}),
+    all on the env of cfg.num_envs evolutions of the pipeline `build` makes of `cfg` with the
+    first agent (its space, fitness config and batched fitness, split across `mesh`)."""
     p = build(dataclasses.replace(cfg, agent=names[0]), mesh)
     methods = [Method(name, p.env, agents.make_policy(
-        name, p.env, agent_config(dataclasses.replace(cfg, agent=name), p.env)))
-        for name in names]
+        name, p.env, settings_of(cfg, name, p.env, overrides))) for name in names]
     return methods, p
+
+
+def settings_of(cfg: RunConfig, name: str, env: EvolutionEnv, overrides: dict | None = None):
+    """Agent `name`'s config as `run` builds it under `cfg`, then `overrides`' fields for it
+    (None for an agent without settings)."""
+    settings = agent_config(dataclasses.replace(cfg, agent=name), env)
+    mine = (overrides or {}).get(name, {})
+    return dataclasses.replace(settings, **mine) if mine else settings
 
 
 def evaluate_together(fitness_fn: Callable, batches: Sequence[tuple]) -> list:
