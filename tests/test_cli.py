@@ -6,8 +6,10 @@ import concurrent.futures
 import csv
 import json
 import logging
+import os
 import shutil
 import sqlite3
+import subprocess
 import sys
 from pathlib import Path
 
@@ -70,6 +72,8 @@ TINY = [
          "the population must be at least 2, got 1"),
         (["--agent", "evolution", "--num-envs", "1"], "it needs at least 2 parallel evolutions"),
         (["--seed", str(2**64)], "--seed must fit in 64 bits"),
+        (["--space", "bad_walker", "--fitness", "table", "--controllers", "1000"],
+         "--controllers 1000: the table holds 32 results a body"),
     ],
 )
 def test_bad_input_exits_with_2(args, message, capsys, tmp_path):
@@ -79,6 +83,21 @@ def test_bad_input_exits_with_2(args, message, capsys, tmp_path):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and message in err[0] and "--help" in err[1], err  # no usage block
     assert not (tmp_path / "run").exists()  # nothing half-written
+
+
+def test_distributed_without_a_coordinator_exits_2(tmp_path):
+    """--distributed where no cluster is found and no --coordinator given: exit 2 with one
+    line saying what to pass, nothing written (a process of its own: JAX's distributed start
+    must come before its backend, which this one has already started)."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("JAX_COORDINATOR_ADDRESS", None)
+    proc = subprocess.run([sys.executable, "-m", "evojax_morph.run", "--distributed", "--out",
+                           str(tmp_path / "run")], capture_output=True, text=True, env=env,
+                          timeout=300)
+    err = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(err) == 2, proc.stderr[-2000:]
+    assert "--distributed:" in err[0] and "--coordinator" in err[0]
+    assert not (tmp_path / "run").exists()
 
 
 @pytest.mark.parametrize("damage", ["cut", "key", "type", "space"])

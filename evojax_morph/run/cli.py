@@ -28,6 +28,7 @@ import jax
 
 from evojax_morph import agents
 from evojax_morph.fitnesses import Inputs, get_fitness, list_fitnesses, resolve_physics
+from evojax_morph.fitnesses import table as table_fitness
 from evojax_morph.physics.determinism import deterministic_gpu, full_precision, persistent_cache
 from evojax_morph.physics.engines import AUTO, list_engines, may_take, registered
 from evojax_morph.run import checkpoints, driver
@@ -99,11 +100,15 @@ def may_step_unreproducibly(known: argparse.Namespace) -> bool:
 
 def start_distributed(argv) -> None:
     """Must run before anything touches a JAX backend, so before the main parser's defaults."""
-    pre = argparse.ArgumentParser(add_help=False)
+    pre = Parser(prog="python -m evojax_morph.run", add_help=False)
     add_distributed_flags(pre)
     known, _ = pre.parse_known_args(argv)
     if known.distributed:
-        init_distributed(known.coordinator, known.num_processes, known.process_id)
+        try:
+            init_distributed(known.coordinator, known.num_processes, known.process_id)
+        except ValueError as e:  # no cluster found and no coordinator given
+            pre.error(f"--distributed: {e} (outside SLURM pass --coordinator, "
+                      "--num-processes and --process-id)")
 
 
 def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
@@ -125,6 +130,12 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
         args.controllers = defaults.controllers
         if gpu and not args.resume:
             args.controllers = get_space(args.space).gpu_controllers(registered(args.physics))
+    if args.fitness == "table" and not args.resume:  # a body's mean of stored results
+        held = table_fitness.Table.load(table_fitness.named_path(
+            Inputs(args.space, table=args.table))).base
+        if args.controllers > held:
+            parser.error(f"--controllers {args.controllers}: the table holds {held} results "
+                         "a body")
     cfg = RunConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(RunConfig)})
     classifier = str(Path(args.classifier).resolve()) if args.classifier else ""
     table = str(Path(args.table).resolve()) if args.table else ""
