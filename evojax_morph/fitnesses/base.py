@@ -97,12 +97,14 @@ def untrained_result(fitness: jax.Array, diverged: jax.Array, params, env_steps:
 
 class Inputs(NamedTuple):
     """What a run gives a fitness kind beyond its settings: the space's name, the task asked for
-    ("": none) and the files the kind reads (`FitnessConfig`'s classifier and table)."""
+    ("": none), the files the kind reads (`FitnessConfig`'s classifier and table) and the
+    controllers a body asked for (0: the run's default)."""
 
     space: str
     task: str = ""
     classifier: str = ""
     table: str = ""
+    controllers: int = 0
 
 
 class Fitness(NamedTuple):

@@ -249,7 +249,8 @@ def _other_task(path: Path, built: str, asked: str) -> str:
 
 
 def check(inputs: Inputs) -> None:
-    """The table file is there, built under the task asked for (if any)."""
+    """The table file is there, built under the task asked for (if any), with as many results
+    a body as the controllers asked for."""
     path = named_path(inputs)
     if not path.is_file():
         raise ValueError(
@@ -265,6 +266,9 @@ def check(inputs: Inputs) -> None:
                          f"{table.space!r}, not {inputs.space!r}")
     if inputs.task and inputs.task != table.task:
         raise ValueError(_other_task(path, table.task, inputs.task))
+    if inputs.controllers > table.base:
+        raise ValueError(f"--controllers {inputs.controllers}: the table holds {table.base} "
+                         "results a body")
 
 
 def make(space: Space, cfg: FitnessConfig):

@@ -44,7 +44,15 @@ def check(inputs: Inputs) -> None:
             "--fitness tame needs --classifier DIR, a classifier trained by "
             f"`python -m evojax_morph.tame --space {inputs.space} --out DIR`"
         )
-    trained_on = json.loads(meta.read_text())["space"]
+    train = f"train it again with `python -m evojax_morph.tame --space {inputs.space} --out DIR`"
+    try:
+        trained_on = json.loads(meta.read_text())["space"]
+    except (ValueError, KeyError, TypeError) as e:  # not JSON, or not a classifier's
+        raise ValueError(f"{str(meta)!r} is not a TAME classifier's record ({type(e).__name__}: "
+                         f"{e}); {train}") from None
+    if not (meta.parent / "params").is_dir():
+        raise ValueError(f"the TAME classifier in {inputs.classifier!r} has tame.json but no "
+                         f"params/ (its weights); {train}")
     if trained_on != inputs.space:
         raise ValueError(_other_space(inputs.classifier, trained_on, inputs.space))
 
