@@ -85,9 +85,9 @@ DAMAGES = (flip, truncate, Path.unlink)  # what a disk error or a cut-short copy
 
 def data_files(checkpoint: Path) -> list[Path]:
     """The files of an Orbax checkpoint that hold data: its arrays' (under d/) and its JSON
-    item's (a run's checkpoint: the digest; a saved controller: its metadata)."""
+    items' (a run's checkpoint: the digest and its record; a saved controller: its metadata)."""
     files = [f for f in sorted(checkpoint.rglob("*")) if f.is_file() and f.parent.name == "d"]
-    json_item = [checkpoint / d / "metadata" for d in ("digest", "meta")
+    json_item = [checkpoint / d / "metadata" for d in ("digest", "record", "meta")
                  if (checkpoint / d).is_dir()]
-    assert files and len(json_item) == 1, f"not a checkpoint of a run or a controller: {checkpoint}"
+    assert files and json_item, f"not a checkpoint of a run or a controller: {checkpoint}"
     return files + json_item

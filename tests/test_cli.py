@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import DAMAGES, data_files, flip
+from conftest import DAMAGES, data_files, flip, truncate
 
 import evojax_morph as em
 from evojax_morph.physics import engines
@@ -83,6 +83,20 @@ def test_bad_input_exits_with_2(args, message, capsys, tmp_path):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and message in err[0] and "--help" in err[1], err  # no usage block
     assert not (tmp_path / "run").exists()  # nothing half-written
+
+
+@pytest.mark.parametrize("record", ['{"space": "bad_walker"}', '{"space": ', '[1]'])
+def test_a_tame_classifier_that_is_not_whole_exits_2(record, capsys, tmp_path):
+    """A classifier folder with tame.json alone (no weights), or a tame.json that is not JSON
+    or not a classifier's: exit 2, one line and the hint, nothing created."""
+    (tmp_path / "tame").mkdir()
+    (tmp_path / "tame" / "tame.json").write_text(record)
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--space", "bad_walker", "--fitness", "tame", "--classifier",
+                  str(tmp_path / "tame"), "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 2 and "python -m evojax_morph.tame" in err[0], err
+    assert not (tmp_path / "run").exists()
 
 
 def test_distributed_without_a_coordinator_exits_2(tmp_path):
@@ -275,28 +289,35 @@ def test_a_rewritten_file_is_the_old_one_or_the_new_one_whole(tmp_path, monkeypa
 
 
 def test_a_second_run_on_a_held_directory_exits_2_naming_the_holder(tmp_path, capsys):
-    """While a run holds --out (its .lock flocked, its pid inside), another run or resume there
-    exits 2 at once with one line naming that pid, and writes nothing there."""
-    import fcntl
-
+    """While another process holds --out (its .lock flocked, its pid inside, as a run does),
+    a run there exits 2 at once with one line naming that pid, and writes nothing
+    there; once the holder is killed (-9: the kernel releases its lock), a run there goes."""
     out = tmp_path / "run"
     out.mkdir()
-    with open(out / ".lock", "w") as holder:
-        fcntl.flock(holder, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        holder.write("4242")
-        holder.flush()
+    hold = ("import fcntl, os, sys, time; f = open(sys.argv[1], 'a+'); "
+            "fcntl.flock(f, fcntl.LOCK_EX); f.write(str(os.getpid())); f.flush(); "
+            "print('held', flush=True); time.sleep(300)")
+    holder = subprocess.Popen([sys.executable, "-c", hold, str(out / ".lock")],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
         with pytest.raises(SystemExit) as e:
             cli.main(TINY + ["--steps", "3", "--out", str(out)])
         assert e.value.code == 2
         err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and "in use by another run (pid 4242)" in err[0], err
+        assert len(err) == 1 and f"in use by another run (pid {holder.pid})" in err[0], err
         assert sorted(p.name for p in out.iterdir()) == [".lock"]
-        assert (out / ".lock").read_text() == "4242"
+    finally:
+        holder.kill()
+        holder.wait()
+    assert cli.main(TINY + ["--steps", "3", "--out", str(out)]) == 0
 
 
-def test_a_resume_runs_to_its_saved_steps_unless_told(tmp_path):
+def test_a_resume_runs_to_its_saved_steps_unless_told(tmp_path, capsys):
     """--resume without --steps continues to the steps its run was started with (not the
-    default 40, which would also rewrite the saved count); --steps N moves the end to N."""
+    default 40, which would also rewrite the saved count); --steps N moves the end to N, and
+    says so. A flag that would make another run (--num-envs, --seed, ...) exits 2 naming it;
+    one given with its saved value is no change."""
     import dataclasses
 
     out = tmp_path / "run"
@@ -304,7 +325,19 @@ def test_a_resume_runs_to_its_saved_steps_unless_told(tmp_path):
     saved = dataclasses.replace(RunConfig(space="bad_walker", fitness="predefined"), steps=9)
     (out / "config.json").write_text(json.dumps(dataclasses.asdict(saved)))
     assert cli.parse(["--out", str(out), "--resume"])[0].steps == 9
-    assert cli.parse(["--out", str(out), "--resume", "--steps", "12"])[0].steps == 12
+    assert cli.parse(["--out", str(out), "--resume", "--seed", "0"])[0] == saved
+    assert capsys.readouterr().out == ""
+    cfg = cli.parse(["--out", str(out), "--resume", "--steps", "12", "--confirm", "2"])[0]
+    assert (cfg.steps, cfg.confirm) == (12, 2)
+    assert capsys.readouterr().out == (
+        "--resume: --steps 9 -> 12, --confirm 4 -> 2; the rest as saved\n")
+    for flag, value in (("--num-envs", "8"), ("--seed", "5"), ("--agent", "random")):
+        with pytest.raises(SystemExit) as e:
+            cli.parse(["--out", str(out), "--resume", flag, value])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert e.value.code == 2 and len(err) == 2, err
+        assert f"--resume: {flag} {value} would make another run (saved: " in err[0], err
+    assert json.loads((out / "config.json").read_text()) == dataclasses.asdict(saved)
     assert cli.parse(["--out", str(tmp_path / "new")])[0].steps == RunConfig().steps
 
 
@@ -380,6 +413,47 @@ def test_resume_past_a_damaged_checkpoint(tmp_path, straight, capsys):
     assert log_rows(split) == log_rows(straight)
 
 
+def test_a_resume_refuses_a_log_or_a_checkpoint_not_its_own(tmp_path, straight, capsys):
+    """Every checkpoint records its step and the body log's proof up to it (issue 81): a log
+    edited, deleted or cut short is refused with one line, exit 2, the directory as it was; a
+    checkpoint copied to another step's name is damaged (skipped, moved aside), and the resume
+    goes on from the one before as an uninterrupted run does."""
+    def refused(damage, says):
+        out = tmp_path / damage.__name__
+        shutil.copytree(straight, out)
+        damage(out / "bodies.sqlite")
+        before = _snapshot(out)
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as e:
+            cli.main(TINY + ["--steps", "12", "--out", str(out), "--resume"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert e.value.code == 2 and len(err) == 1 and says in err[0], err
+        assert {k: v for k, v in _snapshot(out).items() if k != ".lock"} == {
+            k: v for k, v in before.items() if k != ".lock"}
+
+    def edit(f):  # one evaluation's fitness changed, as a flipped bit would
+        db = sqlite3.connect(f)
+        db.execute("UPDATE bodies SET fitness = fitness + 1 WHERE step = 2 AND evolution = 0")
+        db.commit()
+        db.close()
+
+    ours = "is not the body log checkpoint 9 was saved with (40 evaluations up to step 9; "
+    refused(edit, ours + "it holds as many, with other values)")
+    refused(Path.unlink, ours + "it holds 0)")
+    refused(truncate, "bodies.sqlite does not read (DatabaseError: ")
+
+    copied = tmp_path / "copied"
+    shutil.copytree(straight, copied)
+    shutil.copytree(copied / "checkpoints" / "6", copied / "checkpoints" / "12")
+    capsys.readouterr()
+    assert cli.main(TINY + ["--steps", "9", "--out", str(copied), "--resume"]) == 0
+    printed = capsys.readouterr().out
+    assert ("checkpoint 12 is damaged, skipped (Damaged: it holds the state of step 6, not of "
+            "step 12 (copied or renamed?))") in printed, printed
+    assert "resumed at step 9" in printed and (copied / DAMAGED / "12").is_dir()
+    assert (copied / "summary.json").read_text() == (straight / "summary.json").read_text()
+
+
 def test_no_damaged_data_file_is_restored(tmp_path, straight, capsys):
     """Each data file of the newest checkpoint, one at a time, with bytes inverted in place,
     cut to half, then deleted: the restore a --resume makes (`restore_newest` with
@@ -390,9 +464,9 @@ def test_no_damaged_data_file_is_restored(tmp_path, straight, capsys):
     cfg = RunConfig(**json.loads((straight / "config.json").read_text()))
     abstract = jax.eval_shape(build(cfg).agent.init, jax.random.PRNGKey(0))
     _, manager = checkpoint_manager(straight)
-    saved = jax.device_get(restore_checked(manager, 9, abstract))
+    saved = jax.device_get(restore_checked(manager, 9, abstract)[0])
     # The one before is not read here: the test above restores one after a damaged one.
-    restore = lambda manager, step: restore_checked(manager, step, abstract) if step == 9 else 6
+    restore = lambda manager, step: restore_checked(manager, step, abstract)[0] if step == 9 else 6
     reasons = []
     for i, f in enumerate(data_files(straight / "checkpoints" / "9")):
         for damage in DAMAGES:

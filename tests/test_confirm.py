@@ -15,7 +15,7 @@ import evojax_morph as em
 from evojax_morph.fitnesses import table as tb
 from evojax_morph.run import bodylog, cli
 from evojax_morph.run import confirm_stage as confirming
-from evojax_morph.run.checkpoints import Damaged
+from evojax_morph.run.checkpoints import Damaged, seal
 from evojax_morph.run.pipeline import RunConfig
 
 S = 8  # results a body in the tables here
@@ -88,6 +88,14 @@ def test_resume_of_a_finished_run_does_not_confirm_again(planted, tmp_path, monk
     assert cli.main(["--out", str(again), "--resume", "--steps", "4"]) == 0
     for name in ("summary.json", "confirmed.json"):
         assert (again / name).read_text() == (out / name).read_text()
+
+    # Another run's confirmed.json (sealed, but of another body log) is not kept: confirmed again.
+    record = json.loads((again / "confirmed.json").read_text())
+    record["log"]["sha256"] = "0" * 64
+    (again / "confirmed.json").write_text(json.dumps(seal(record)))
+    with pytest.raises(AssertionError, match="confirmed again"):
+        cli.main(["--out", str(again), "--resume", "--steps", "4"])
+    (again / "confirmed.json").write_text((out / "confirmed.json").read_text())
 
     # Read back only as it was written: a value changed, or the file cut short, is an error.
     record = json.loads((again / "confirmed.json").read_text())

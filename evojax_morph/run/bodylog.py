@@ -8,10 +8,17 @@ and upright (the gait of its evaluation episodes, `FitnessResult`; NULL where no
 controller inheritance a body's fitness depends on its lineage, so this is a log, not a cache:
 the same body appears once per evaluation. Table `shapes` keeps each body once (body, morphology
 as `Space.to_json`), so that a body of the log can be evaluated again (`run`'s confirm stage).
+
+The log proves itself: `BodyLog.proof` is the count of its evaluations and the SHA-256 of their
+rows in the order they were added (step, then evolution), which every checkpoint records; a
+--resume recomputes it from the file up to the checkpoint's step (`proof`) and refuses a log
+that was changed, damaged or replaced.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import sqlite3
 from pathlib import Path
 
@@ -25,6 +32,32 @@ SCHEMA = """CREATE TABLE IF NOT EXISTS bodies (
   fitness_std REAL NOT NULL, diverged INTEGER NOT NULL, parent TEXT, distance REAL, upright REAL
 );
 CREATE TABLE IF NOT EXISTS shapes (body TEXT PRIMARY KEY, morphology TEXT NOT NULL)"""
+COLUMNS = "step, evolution, body, fitness, fitness_std, diverged, parent, distance, upright"
+
+
+def _digest(rows, found):
+    """The running SHA-256 `found` (hashlib's) updated with the log's `rows` (tuples of
+    COLUMNS), each as a line of JSON (floats written exactly); returns it."""
+    for row in rows:
+        found.update((json.dumps(list(row)) + "\n").encode())
+    return found
+
+
+def proof(path: Path, step: int) -> dict:
+    """{"rows", "sha256"} of the log in the file `path` up to `step` (`BodyLog.proof`), read
+    without changing it; a missing file holds no rows. Raises sqlite3's error where it does
+    not read (damaged, cut short)."""
+    found, rows = hashlib.sha256(), 0
+    if Path(path).exists():
+        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+        try:
+            for row in db.execute(f"SELECT {COLUMNS} FROM bodies WHERE step <= ? "
+                                  "ORDER BY step, evolution", (step,)):
+                _digest([row], found)
+                rows += 1
+        finally:
+            db.close()
+    return {"rows": rows, "sha256": found.hexdigest()}
 
 
 class BodyLog:
@@ -41,6 +74,7 @@ class BodyLog:
                 self.db.execute(f"ALTER TABLE bodies ADD COLUMN {gait} REAL")
         self.db.commit()
         self._names: dict[bytes, str] = {}
+        self._rows, self._hash = 0, hashlib.sha256()  # what `proof` says
 
     def name(self, m: Morphology) -> str:
         """The canonical name of one host-side body, computed once per distinct array."""
@@ -64,17 +98,29 @@ class BodyLog:
              gait(distance, i), gait(upright, i))
             for i in range(len(fitness))
         ]
-        self.db.executemany("INSERT INTO bodies (step, evolution, body, fitness, fitness_std, "
-                            "diverged, parent, distance, upright) VALUES (?, ?, ?, ?, ?, ?, ?, ?, "
-                            "?)", rows)
+        self.db.executemany(f"INSERT INTO bodies ({COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                            rows)
+        self._hash = _digest(rows, self._hash)
+        self._rows += len(rows)
+
+    def proof(self) -> dict:
+        """{"rows": the evaluations added, "sha256": of their rows in order}: what a checkpoint
+        records and `proof` recomputes from the file."""
+        return {"rows": self._rows, "sha256": self._hash.hexdigest()}
 
     def commit(self) -> None:
         self.db.commit()
 
-    def truncate(self, after_step: int) -> None:
-        """Forgets the steps after `after_step` (a resumed run redoes them)."""
-        self.db.execute("DELETE FROM bodies WHERE step > ?", (after_step,))
+    def resume(self, step: int) -> None:
+        """Forgets the steps after `step` (a resumed run redoes them; -1: every step) and goes
+        on from the proof of those before."""
+        self.db.execute("DELETE FROM bodies WHERE step > ?", (step,))
         self.db.commit()
+        rows = self.db.execute(f"SELECT {COLUMNS} FROM bodies ORDER BY step, evolution")
+        self._rows, self._hash = 0, hashlib.sha256()
+        for row in rows:
+            self._hash = _digest([row], self._hash)
+            self._rows += 1
 
     def close(self) -> None:
         self.db.close()

@@ -4,8 +4,11 @@ that reads (`restore_newest`), the damaged ones moved aside, for `driver`'s --re
 Every checkpoint proves what it holds: beside the agent state it keeps, in the same atomic save,
 the SHA-256 of each array's bytes (`save_args`); a restore recomputes them (`restore_checked`).
 A digest that does not match or is missing, or non-finite values where the state must be finite
-(`FINITE`), make the checkpoint damaged, as one that does not read is. Saved controllers and
-confirmed.json carry digests of the same kind (`digests`, `seal`).
+(`FINITE`), make the checkpoint damaged, as one that does not read is. It also records which
+it is: its step and the proof of the run's body log up to it (`bodylog.BodyLog.proof`), so a
+checkpoint copied or renamed to another step is damaged too, and a --resume checks the body log
+against it (`driver`). Saved controllers and confirmed.json carry digests of the same kind
+(`digests`, `seal`); confirmed.json also the log's proof, kept only by a resume of that log.
 """
 
 from __future__ import annotations
@@ -131,29 +134,41 @@ def check(tree, saved: dict | None, finite=("",)) -> None:
             raise Damaged(f"{name}: non-finite values where they must be finite")
 
 
-def save_args(state):
-    """Orbax's save of the agent `state` with its digest (one atomic step); every process."""
+def save_args(state, step: int, log: dict | None):
+    """Orbax's save of the agent `state` at `step` with its digest and its record, {"step",
+    "log": the body log's proof (`bodylog.BodyLog.proof`), None on the processes that keep no
+    log}, in one atomic step; every process."""
     import orbax.checkpoint as ocp
 
     return ocp.args.Composite(state=ocp.args.StandardSave(state),
-                              digest=ocp.args.JsonSave(digests(to_host(state))))
+                              digest=ocp.args.JsonSave(digests(to_host(state))),
+                              record=ocp.args.JsonSave({"step": step, "log": log}))
 
 
 def restore_checked(manager, step: int, abstract):
-    """The agent state of checkpoint `step`, restored as `abstract` and checked against its
-    digest (`check`, the `FINITE` parts finite). Raises: `Damaged` or Orbax's read error."""
+    """(the agent state of checkpoint `step`, restored as `abstract` and checked against its
+    digest (`check`, the `FINITE` parts finite); its record, whose step must be `step`).
+    Raises: `Damaged` or Orbax's read error."""
     import orbax.checkpoint as ocp
 
     args = ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
-                              digest=ocp.args.JsonRestore())
+                              digest=ocp.args.JsonRestore(), record=ocp.args.JsonRestore())
     try:
         restored = manager.restore(step, args=args)
     except KeyError as e:  # Orbax's for an item the checkpoint lacks
         if '"digest"' in str(e):
             raise Damaged("no digest saved (saved before checkpoints had digests?)") from None
+        if '"record"' in str(e):
+            raise Damaged("no step or body log recorded (saved before checkpoints recorded "
+                          "them?)") from None
         raise
     check(to_host(restored["state"]), restored["digest"], FINITE)
-    return restored["state"]
+    record = restored["record"]
+    if not isinstance(record, dict) or record.get("step") != step:
+        saved = record.get("step") if isinstance(record, dict) else None
+        raise Damaged(f"it holds the state of step {saved}, not of step {step} (copied or "
+                      "renamed?)")
+    return restored["state"], record
 
 
 def seal(record: dict) -> dict:

@@ -28,7 +28,6 @@ import jax
 
 from evojax_morph import agents
 from evojax_morph.fitnesses import Inputs, get_fitness, list_fitnesses, resolve_physics
-from evojax_morph.fitnesses import table as table_fitness
 from evojax_morph.physics.determinism import deterministic_gpu, full_precision, persistent_cache
 from evojax_morph.physics.engines import AUTO, list_engines, may_take, registered
 from evojax_morph.run import checkpoints, driver
@@ -111,6 +110,37 @@ def start_distributed(argv) -> None:
                       "--num-processes and --process-id)")
 
 
+# What a --resume may change (the rest would not fit its checkpoint or would make another run):
+# how far it runs, on which engine, how often it saves, and its confirm stage.
+RESUME_MAY_CHANGE = ("steps", "physics", "checkpoint_every", "confirm", "confirm_controllers")
+
+
+def given_flags(parser: argparse.ArgumentParser, argv) -> set[str]:
+    """The destinations of the flags `argv` gives `parser` (a flag given with its default
+    value too)."""
+    for action in parser._actions:
+        action.default = argparse.SUPPRESS
+    return set(vars(parser.parse_args(argv)))
+
+
+def resumed(parser, cfg: RunConfig, args, given: set[str]) -> RunConfig:
+    """The saved `cfg` with the flags given that a --resume may change (`RESUME_MAY_CHANGE`),
+    said in one line; exit 2 where a flag given would change another setting."""
+    new = {f.name: getattr(args, f.name) for f in dataclasses.fields(RunConfig)
+           if f.name in given and getattr(args, f.name) != getattr(cfg, f.name)}
+    flag = lambda name: "--" + name.replace("_", "-")  # noqa: E731
+    fixed = [name for name in new if name not in RESUME_MAY_CHANGE]
+    if fixed:
+        name = fixed[0]
+        parser.error(f"--resume: {flag(name)} {new[name]} would make another run (saved: "
+                     f"{getattr(cfg, name)}); a resume may change only "
+                     f"{', '.join(map(flag, RESUME_MAY_CHANGE))}")
+    if new and jax.process_index() == 0:
+        print("--resume: " + ", ".join(f"{flag(k)} {getattr(cfg, k)} -> {v}"
+                                       for k, v in new.items()) + "; the rest as saved")
+    return dataclasses.replace(cfg, **new)
+
+
 def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
     """The run's config, directory, --resume and whether to draw best.gif; exits 2 with the
     reason (`parser.error`) on a bad flag."""
@@ -121,6 +151,7 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
     defaults = dataclasses.replace(RunConfig(), **gpu_defaults(space)) if gpu else RunConfig()
     parser = make_parser(defaults)
     args = parser.parse_args(argv)
+    given = given_flags(make_parser(defaults), argv)
     check(parser, args)
     if not args.resume:
         args.physics = physics(parser, args.physics, args.fitness)
@@ -130,12 +161,6 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
         args.controllers = defaults.controllers
         if gpu and not args.resume:
             args.controllers = get_space(args.space).gpu_controllers(registered(args.physics))
-    if args.fitness == "table" and not args.resume:  # a body's mean of stored results
-        held = table_fitness.Table.load(table_fitness.named_path(
-            Inputs(args.space, table=args.table))).base
-        if args.controllers > held:
-            parser.error(f"--controllers {args.controllers}: the table holds {held} results "
-                         "a body")
     cfg = RunConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(RunConfig)})
     classifier = str(Path(args.classifier).resolve()) if args.classifier else ""
     table = str(Path(args.table).resolve()) if args.table else ""
@@ -164,7 +189,8 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
                 raise TypeError(f"wrong type of {', '.join(wrong)}")
         except (ValueError, TypeError) as e:  # cut short, an unknown key, space or type
             parser.error(f"--resume: {str(saved)!r} is not a run's config.json ({e})")
-        cfg = dataclasses.replace(cfg, steps=cfg.steps if args.steps is None else args.steps)
+        args.classifier, args.table = classifier, table  # compared resolved
+        cfg = resumed(parser, cfg, args, given)
         cfg = dataclasses.replace(cfg, physics=physics(parser, cfg.physics, cfg.fitness))
     elif (out / "checkpoints").exists():
         parser.error(
@@ -378,7 +404,8 @@ def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     if args.confirm_controllers < 2:
         parser.error("--confirm-controllers must be at least 2 (an interval needs 2 values)")
     kind = get_fitness(args.fitness)
-    inputs = Inputs(args.space, args.task or "", args.classifier, args.table)
+    inputs = Inputs(args.space, args.task or "", args.classifier, args.table,
+                    args.controllers or 0)
     if not args.resume:  # a --resume takes its run's, checked when it began
         try:
             kind.check(inputs)

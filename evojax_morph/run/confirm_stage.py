@@ -55,16 +55,18 @@ def best_controllers(cfg: RunConfig, p: Pipeline) -> FitnessConfig:
         cfg.confirm_controllers)
 
 
-def kept_record(out: Path, cfg: RunConfig, step: int) -> dict | None:
-    """confirmed.json's record where the run was confirmed at `step` with these settings (a
-    --resume of a finished run: not done again), else None. Raises `Damaged` where the file
-    does not read."""
+def kept_record(out: Path, cfg: RunConfig, step: int, log: dict | None) -> dict | None:
+    """confirmed.json's record where the run was confirmed at `step` with these settings from
+    the body log whose proof the restored checkpoint holds (`log`; None: none restored), so a
+    --resume of a finished run does not do it again; else None (another run's file, or one of
+    a log since gone on). Raises `Damaged` where the file does not read."""
     done = out / "confirmed.json"
     if not done.exists():
         return None
     before = checkpoints.read_sealed(done)
-    now = {"env_steps": step, "bodies": cfg.confirm, "controllers": cfg.confirm_controllers}
-    return before if all(before.get(k) == v for k, v in now.items()) else None
+    now = {"env_steps": step, "bodies": cfg.confirm, "controllers": cfg.confirm_controllers,
+           "log": log}
+    return before if log is not None and all(before.get(k) == v for k, v in now.items()) else None
 
 
 def confirms_now(run, step: int) -> bool:
@@ -72,7 +74,8 @@ def confirms_now(run, step: int) -> bool:
     not skipped (`confirm_skipped`), not kept (`kept_record`). Then the greedy trajectory's
     bodies join its fitness call; else they have one of their own
     (`pipeline.make_greedy_evaluation`)."""
-    return not confirm_skipped(run.cfg) and kept_record(run.out, run.cfg, step) is None
+    return not confirm_skipped(run.cfg) and kept_record(run.out, run.cfg, step,
+                                                        run.resumed_log) is None
 
 
 def greedy_apart(run, step: int) -> bool:
@@ -81,7 +84,7 @@ def greedy_apart(run, step: int) -> bool:
     results of theirs (`kept_greedy`: a finished run resumed keeps them)."""
     if confirm_skipped(run.cfg):
         return True
-    kept = kept_record(run.out, run.cfg, step)  # None: it confirms now, the bodies with it
+    kept = kept_record(run.out, run.cfg, step, run.resumed_log)  # None: confirms now, with it
     return kept is not None and not kept.get("greedy")
 
 
@@ -122,7 +125,8 @@ def confirm_stage(run, evolved, ahead, clock) -> Best:
     draw = to_host((state.best_morph, state.best_fitness, state.best_params))
     ahead.wait("confirm")
     record, top, joined = confirm_record(run.out, p, cfg, evolved.step, run.log,
-                                         None if greedy is None else greedy.morphs)
+                                         None if greedy is None else greedy.morphs,
+                                         run.resumed_log)
     if joined is not None:
         greedy = greedy_confirmed(greedy, joined)
     elif greedy is not None:
@@ -137,13 +141,14 @@ def confirm_stage(run, evolved, ahead, clock) -> Best:
     clock.phase("controllers")
     if top is not None and run.lead:  # written last: the stage is done, a --resume keeps it
         record["best_morphology"] = best.to_dict()
+        record["log"] = evolved.log  # whose bodies: a --resume keeps it for this log alone
         checkpoints.write_atomic(run.out / "confirmed.json",
                                  json.dumps(checkpoints.seal(record), indent=1))
     return Best(best, best_fitness, record, top, saved, greedy)
 
 
 def confirm_record(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print,
-                   greedy: list | None = None):
+                   greedy: list | None = None, resumed_log: dict | None = None):
     """The bodies of a run's log confirmed, the greedy trajectory's `greedy` in the same call;
     every process calls it, after the body log is written.
 
@@ -154,8 +159,9 @@ def confirm_record(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print,
     `fold_in(PRNGKey(seed), CONFIRM_SALT)`, which no other part of the run uses. The greedy
     bodies only ride along (one call's latency instead of two, issue 61): they enter neither
     the record nor the choice of the best. Skipped, with a note saying why (`confirm_skipped`);
-    not done again when confirmed.json says it was done at this step with these settings
-    (`kept_record`: a --resume of a finished run).
+    not done again when confirmed.json says it was done at this step with these settings, from
+    the body log the restored checkpoint proves (`resumed_log`; `kept_record`: a --resume of a
+    finished run).
 
     Returns:
       (record, top, joined): record is what confirmed.json keeps (env_steps, bodies,
@@ -165,10 +171,13 @@ def confirm_record(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print,
     """
     n, c = cfg.confirm, cfg.confirm_controllers
     record = {"env_steps": step, "bodies": n, "controllers": c, "confirmed": []}
-    before = kept_record(out, cfg, step)
+    before = kept_record(out, cfg, step, resumed_log)
     if before is not None:
         log("confirm: done when the run finished, kept (confirmed.json)")
         return before, None, None
+    if (out / "confirmed.json").exists():
+        log("confirm: confirmed.json is not of this body log at this step with these settings, "
+            "so the bodies are confirmed again")
     record["confirm_note"] = confirm_skipped(cfg)
     if record["confirm_note"]:
         if n:  # --confirm 0 said so itself

@@ -107,6 +107,7 @@ class Run(NamedTuple):
     greedy_evaluation: Callable | None  # its bodies evaluated, where the confirm stage does not
     key_init: jax.Array
     key_greedy: jax.Array
+    resumed_log: dict | None  # the body log's proof the restored checkpoint holds (None: none)
 
 
 class Evolved(NamedTuple):
@@ -121,6 +122,7 @@ class Evolved(NamedTuple):
     greedy: Greedy | None  # walked, no fitness yet; None for the baselines: no policy
     best_bodies: list[dict] | None  # the body log's 10 of the highest mean (lead process)
     best_draw: dict | None  # the body log's highest single draw (lead process)
+    log: dict | None  # the body log's proof at `step` (lead process; confirmed.json keeps it)
 
 
 def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) -> None:
@@ -169,14 +171,17 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
     on_mesh = lambda x: jax.ShapeDtypeStruct(  # noqa: E731
         x.shape, x.dtype, sharding=replicated(batch_mesh()), weak_type=x.weak_type)
     abstract = jax.tree.map(on_mesh, jax.eval_shape(p.agent.init, key_init))
-    step = state = None
+    step = state = resumed_log = None
     if resume:
-        step, state, _ = checkpoints.restore_newest(
+        step, restored, _ = checkpoints.restore_newest(
             out, lambda manager, step: checkpoints.restore_checked(manager, step, abstract), log
         )
         if step is None:
             log(f"--resume: {out} holds no checkpoint yet (the run stopped before its first), "
                 "so it starts again from m0")
+        else:
+            state, resumed_log = restored[0], restored[1]["log"]
+            check_log(out / "bodies.sqlite", step, resumed_log)
         if lead:  # a checkpoint reads (or there is none): the run goes on under this config
             write_config()
     _, manager = checkpoints.checkpoint_manager(out)
@@ -184,8 +189,25 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
     walk, evaluation = (None, None) if p.agent.scores is None else (
         make_greedy_walk(p), make_greedy_evaluation(p))
     run = Run(cfg, out, gif, p, lead, log, manager, bodies, walk, evaluation, key_init,
-              key_greedy)
+              key_greedy, resumed_log)
     return run, step, state, abstract
+
+
+def check_log(path: Path, step: int, saved: dict | None) -> None:
+    """Raises `checkpoints.Damaged` unless the body log `path` holds, up to `step`, the rows
+    whose proof the checkpoint of `step` recorded (`saved`; None: a process that kept no log):
+    a log deleted, emptied, cut short, edited or another run's is not resumed."""
+    if saved is None:
+        return
+    with checkpoints.read_error(str(path)):
+        found = bodylog.proof(path, step)
+    if found != saved:
+        what = (f"{found['rows']:,}" if found["rows"] != saved["rows"]
+                else "as many, with other values")
+        raise checkpoints.Damaged(
+            f"--resume: {str(path)!r} is not the body log checkpoint {step} was saved with "
+            f"({saved['rows']:,} evaluations up to step {step}; it holds {what}): the run "
+            "cannot go on from it (a log changed, damaged or of another run)")
 
 
 def _warm_up(run: Run, step, state, ahead: Warmup, clock: Clock):
@@ -201,7 +223,7 @@ def _warm_up(run: Run, step, state, ahead: Warmup, clock: Clock):
         with open(run.out / "metrics.csv") as f:
             rows = [r for r in csv.DictReader(f) if int(r["step"]) <= step]
         if run.lead:
-            run.bodies.truncate(step)
+            run.bodies.resume(step)
         run.log(f"resumed at step {step}")
         return step, state, rows, loading
     run.log("evaluating m0 in every evolution...")
@@ -220,7 +242,7 @@ def _warm_up(run: Run, step, state, ahead: Warmup, clock: Clock):
     first = to_host(state.first)
     clock.part("m0_evaluate")
     if run.lead:
-        run.bodies.truncate(-1)
+        run.bodies.resume(-1)
         run.bodies.add(0, first.morph, first.fitness, first.fitness_std, first.diverged,
                        distance=first.distance, upright=first.upright)
         run.bodies.commit()
@@ -269,12 +291,14 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: 
             w.writerows(rows)
             checkpoints.write_atomic(run.out / "metrics.csv", table.getvalue())
         if chunks_done % cfg.checkpoint_every == 0 or step >= cfg.steps:
-            run.manager.save(step, args=checkpoints.save_args(state))
+            run.manager.save(step, args=checkpoints.save_args(
+                state, step, run.bodies.proof() if lead else None))
     bar.close()
     run.manager.wait_until_finished()
-    ranked = draw = None
+    ranked = draw = proof = None
     if lead:
         writer.close()
+        proof = run.bodies.proof()
         run.bodies.close()
         path = run.out / "bodies.sqlite"
         ranked, draw = bodylog.best_bodies(path, 10), bodylog.best_draw(path)
@@ -286,7 +310,7 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: 
     barrier("body log written")  # every process reads it in the confirm stage
     clock.phase("greedy_rollout")  # the walk alone since issue 61 (its bodies' evaluation is in
     # "confirm"); the name kept, as in docs/warp/run_timing.jsonl's rows
-    return Evolved(state, step, rows, chunk_seconds, dispatch, greedy, ranked, draw)
+    return Evolved(state, step, rows, chunk_seconds, dispatch, greedy, ranked, draw, proof)
 
 
 def _record_chunk(run: Run, step: int, n: int, metrics: dict, writer) -> list[dict]:
