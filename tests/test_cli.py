@@ -157,15 +157,22 @@ def test_a_table_that_is_not_the_spaces_exits_2(table, capsys, tmp_path):
     assert not (tmp_path / "run").exists()
 
 
-def test_unwritable_out_and_missing_resume(capsys, tmp_path):
+def test_unwritable_out_and_missing_resume(capsys, tmp_path, monkeypatch):
+    """An --out that cannot be written, a --resume of no run or without --out: exit 2, two
+    lines, nothing made (not the directory, not a fresh runs/...-seed0)."""
     blocker = tmp_path / "file"
     blocker.write_text("")
     with pytest.raises(SystemExit) as e:
         cli.main(TINY + ["--out", str(blocker / "run")])
     assert e.value.code == 2 and "cannot write to --out" in capsys.readouterr().err
-    with pytest.raises(SystemExit) as e:
-        cli.main(TINY + ["--out", str(tmp_path / "empty"), "--resume"])
-    assert e.value.code == 2 and "no run in" in capsys.readouterr().err
+    monkeypatch.chdir(tmp_path)  # where a fresh run directory would go (runs/...)
+    for resume, says in ((["--out", str(tmp_path / "missing")], "no run in"),
+                         ([], "--resume needs --out")):
+        with pytest.raises(SystemExit) as e:
+            cli.main(TINY + resume + ["--resume"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert e.value.code == 2 and len(err) == 2 and says in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]  # nothing made
 
 
 def test_physics_that_cannot_run_exits_with_2(monkeypatch, capsys, tmp_path):

@@ -165,7 +165,11 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
     classifier = str(Path(args.classifier).resolve()) if args.classifier else ""
     table = str(Path(args.table).resolve()) if args.table else ""
     cfg = dataclasses.replace(cfg, classifier=classifier, table=table)
+    if args.resume and not args.out:
+        parser.error("--resume needs --out, the run directory to continue")
     out = Path(args.out) if args.out else driver.fresh_run_dir(cfg)
+    if args.resume and not (out / "config.json").is_file():  # checked before anything is made
+        parser.error(f"--resume: no run in {str(out)!r} (no config.json)")
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / f".write_test{jax.process_index()}"
@@ -175,8 +179,6 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
         parser.error(f"cannot write to --out {str(out)!r}: {e.strerror or e}")
     saved = out / "config.json"
     if args.resume:
-        if not saved.exists():
-            parser.error(f"--resume: no run in {str(out)!r} (no config.json)")
         try:  # a run begun before tasks were named trained under the source's task
             config = {"task": "distance", **json.loads(saved.read_text())}
             cfg, default = RunConfig(**config), RunConfig()
