@@ -17,13 +17,21 @@ from flax import struct
 
 @struct.dataclass
 class Morphology:
-    """A padded tree of limbs; what each kind, site and attribute means is up to its space."""
+    """A padded tree of limbs; what each kind, site and attribute means is up to its space.
 
-    active: jax.Array  # (max_nodes,) bool: the slot holds a limb
-    parent: jax.Array  # (max_nodes,) int32: parent slot, -1 for the root and inactive slots
-    kind: jax.Array  # (max_nodes,) int32: limb kind (the space's `kind_names`)
-    site: jax.Array  # (max_nodes,) int32: where on its parent the limb attaches (`site_names`)
-    attrs: jax.Array  # (max_nodes, num_attrs) float32: continuous attributes, e.g. length
+    Attributes:
+      active: (max_nodes,) bool: the slot holds a limb
+      parent: (max_nodes,) int32: parent slot, -1 for the root and inactive slots
+      kind: (max_nodes,) int32: limb kind (the space's `kind_names`)
+      site: (max_nodes,) int32: where on its parent the limb attaches (`site_names`)
+      attrs: (max_nodes, num_attrs) float32: continuous attributes, e.g. length
+    """
+
+    active: jax.Array
+    parent: jax.Array
+    kind: jax.Array
+    site: jax.Array
+    attrs: jax.Array
 
     @property
     def max_nodes(self) -> int:

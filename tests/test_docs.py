@@ -4,6 +4,8 @@ is named), and every name `evojax_morph` exports on a page of the API reference.
 second at most; `mkdocs build --strict` (.ci/run) checks the same links as the site resolves
 them."""
 
+import dataclasses
+import inspect
 import re
 from pathlib import Path
 
@@ -85,3 +87,32 @@ def test_every_exported_name_is_in_the_api_reference():
              for name in em.__all__}
     missing = sorted(name for name, path in {**paths, **lazy}.items() if path not in shown)
     assert not missing, f"not on an API page: {missing}"
+
+
+def undocumented_fields(cls) -> list[str]:
+    """The fields of the dataclass or NamedTuple `cls` its docstring's `Attributes:` section
+    (Google style, as the API reference renders it) does not name; a field documented only by
+    a `#` comment in the source shows as nothing there."""
+    fields = ([f.name for f in dataclasses.fields(cls)] if dataclasses.is_dataclass(cls)
+              else list(getattr(cls, "_fields", ())))
+    doc = inspect.getdoc(cls) or ""
+    section = doc.split("\nAttributes:\n", 1)[1] if "\nAttributes:\n" in doc else ""
+    named = set(re.findall(r"^  (\w+)(?: \([^)]*\))?:", section, flags=re.M))
+    return [f for f in fields if f not in named]
+
+
+def test_every_field_of_an_exported_class_is_documented():
+    """What the quickstart prints and a user reads (FitnessResult's fitness, distance and
+    upright; Confirmed's body, ...) is on the API page, for every class `evojax_morph`
+    exports."""
+    missing = [f"{name}.{field}" for name in em.__all__ if inspect.isclass(getattr(em, name))
+               for field in undocumented_fields(getattr(em, name))]
+    assert not missing, f"fields without an Attributes: entry: {missing}"
+
+    @dataclasses.dataclass
+    class Commented:  # what the check must catch
+        """A class whose field is documented by a comment alone."""
+
+        x: int = 0  # a comment, which the API reference does not show
+
+    assert undocumented_fields(Commented) == ["x"]

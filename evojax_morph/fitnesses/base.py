@@ -20,22 +20,23 @@ from evojax_morph.tasks import TaskConfig
 class FitnessConfig:
     """Which fitness, and the settings of each kind (a kind reads only its own).
 
-    kind: a registered fitness (`list_fitnesses()`): "ppo" (the return of a controller trained
-      with PPO on the body, NGE-style), "predefined" (the space's hand-crafted deterministic
-      fitness) or "tame" (task-agnostic: how well random motor primitives can be told apart
-      from where they leave the body, with a pre-trained classifier; see `evojax_morph.tame`)
-      or "table" (the mean of `ppo.controllers` stored PPO results of the body, drawn from a
-      landscape table; no controllers, no inheritance; see `fitnesses.table`).
-    task: the locomotion task the PPO controller learns (`make_task(name)`; its name says
-      which registered task it started from).
-    ppo: the inner PPO's settings and budget.
-    classifier: for "tame", the directory of a classifier saved by `python -m evojax_morph.tame`.
-    physics: the engine that steps the worlds of the kinds that simulate ("jax" or "warp",
-      `evojax_morph.physics.engines`; the CLI resolves its "auto" before it gets here).
-    table: for "table", the .npz of a table built by `python -m experiments.build_tables`;
-      "" for the space's packaged table (`evojax_morph/fitnesses/tables/SPACE.npz`).
-    classes: for "ppo", train each body on the smallest of the space's size classes that holds
-      it (`evojax_morph.physics.classes`; spaces without classes ignore it).
+    Attributes:
+      kind: a registered fitness (`list_fitnesses()`): "ppo" (the return of a controller trained
+        with PPO on the body, NGE-style), "predefined" (the space's hand-crafted deterministic
+        fitness) or "tame" (task-agnostic: how well random motor primitives can be told apart
+        from where they leave the body, with a pre-trained classifier; see `evojax_morph.tame`)
+        or "table" (the mean of `ppo.controllers` stored PPO results of the body, drawn from a
+        landscape table; no controllers, no inheritance; see `fitnesses.table`).
+      task: the locomotion task the PPO controller learns (`make_task(name)`; its name says
+        which registered task it started from).
+      ppo: the inner PPO's settings and budget.
+      classifier: for "tame", the directory of a classifier saved by `python -m evojax_morph.tame`.
+      physics: the engine that steps the worlds of the kinds that simulate ("jax" or "warp",
+        `evojax_morph.physics.engines`; the CLI resolves its "auto" before it gets here).
+      table: for "table", the .npz of a table built by `python -m experiments.build_tables`;
+        "" for the space's packaged table (`evojax_morph/fitnesses/tables/SPACE.npz`).
+      classes: for "ppo", train each body on the smallest of the space's size classes that holds
+        it (`evojax_morph.physics.classes`; spaces without classes ignore it).
     """
 
     kind: str = "ppo"
@@ -74,16 +75,31 @@ class FitnessConfig:
 
 @struct.dataclass
 class FitnessResult:
-    fitness: jax.Array  # (B,) float: the fitness of each morphology
-    fitness_std: jax.Array  # (B,) float: spread across evaluation episodes (0 if deterministic)
-    diverged: jax.Array  # (B,) bool: a simulation diverged; its fitness is finite but suspect
-    params: Params | None  # batched (B, ...) trained controllers; None for kinds without one
-    train_return: jax.Array  # (B,) mean over envs of the last finished training episode's return
-    entropy: jax.Array  # (B,) policy entropy per motor at the end of training
-    # The gait of the evaluation episodes (NaN for a kind that runs none, or a table without):
-    distance: jax.Array  # (B,) metres the trunk moved forward in an episode, mean
-    upright: jax.Array  # (B,) the fraction of an episode before a fall, mean (1: never fell)
-    env_steps: int = struct.field(pytree_node=False)  # control steps spent per morphology
+    """What a fitness call returns for a batch of B bodies (`em.evaluate`). The gait, `distance`
+    and `upright`, is of the evaluation episodes: NaN for a kind that runs none (predefined,
+    TAME) and a table built without them.
+
+    Attributes:
+      fitness: (B,) float: the fitness of each morphology
+      fitness_std: (B,) float: spread across evaluation episodes (0 if deterministic)
+      diverged: (B,) bool: a simulation diverged; its fitness is finite but suspect
+      params: batched (B, ...) trained controllers; None for kinds without one
+      train_return: (B,) mean over envs of the last finished training episode's return
+      entropy: (B,) policy entropy per motor at the end of training
+      distance: (B,) metres the trunk moved forward in an episode, mean
+      upright: (B,) the fraction of an episode before a fall, mean (1: never fell)
+      env_steps: control steps spent per morphology
+    """
+
+    fitness: jax.Array
+    fitness_std: jax.Array
+    diverged: jax.Array
+    params: Params | None
+    train_return: jax.Array
+    entropy: jax.Array
+    distance: jax.Array
+    upright: jax.Array
+    env_steps: int = struct.field(pytree_node=False)
 
 
 def untrained_result(fitness: jax.Array, diverged: jax.Array, params, env_steps: int):

@@ -22,11 +22,32 @@ from evojax_morph.tasks import Locomotion
 
 @dataclasses.dataclass(frozen=True)
 class PPOConfig:
-    """Inner PPO settings; budgets are per morphology."""
+    """Inner PPO settings; budgets are per morphology.
 
-    train_steps: int = 100_000  # control steps of training, over all envs
-    num_envs: int = 32  # parallel worlds per morphology
-    unroll_length: int = 20  # control steps per env between updates
+    Attributes:
+      train_steps: control steps of training, over all envs
+      num_envs: parallel worlds per morphology
+      unroll_length: control steps per env between updates
+      num_minibatches: minibatches an update's batch (num_envs x unroll_length) is split into
+      update_epochs: passes over each update's batch
+      learning_rate: Adam's step size
+      discount: the return's discount factor (gamma)
+      gae_lambda: the lambda of generalised advantage estimation
+      clip_eps: PPO's clipping of the probability ratio
+      entropy_cost: the weight of the policy's entropy bonus
+      vf_coef: the weight of the value loss
+      max_grad_norm: gradients clipped to this global norm
+      reward_scaling: rewards multiplied by this before learning
+      normalize_observations: observations normalised by running statistics (`Params.normalizer`)
+      policy_hidden: the policy network's hidden layer widths
+      value_hidden: the value network's hidden layer widths
+      eval_episodes: deterministic episodes of episode_length after training
+      controllers: K independent controllers per body; the fitness is their mean
+    """
+
+    train_steps: int = 100_000
+    num_envs: int = 32
+    unroll_length: int = 20
     num_minibatches: int = 4
     update_epochs: int = 8
     learning_rate: float = 1e-3
@@ -40,8 +61,8 @@ class PPOConfig:
     normalize_observations: bool = True
     policy_hidden: tuple[int, ...] = (32, 32)
     value_hidden: tuple[int, ...] = (64, 64)
-    eval_episodes: int = 4  # deterministic episodes of episode_length after training
-    controllers: int = 1  # K independent controllers per body; the fitness is their mean
+    eval_episodes: int = 4
+    controllers: int = 1
 
     @property
     def num_updates(self) -> int:
@@ -61,7 +82,14 @@ class PPOConfig:
 
 
 class Params(NamedTuple):
-    """A controller: what a child inherits from its parent."""
+    """A controller: what a child inherits from its parent.
+
+    Attributes:
+      normalizer: the running mean and variance the observations are normalised by (brax's
+        `running_statistics`)
+      policy: the policy network's weights (flax)
+      value: the value network's weights (flax)
+    """
 
     normalizer: running_statistics.RunningStatisticsState
     policy: dict

@@ -29,15 +29,25 @@ from evojax_morph.spaces import Space
 
 @dataclasses.dataclass(frozen=True)
 class Confirmed:
-    """One body's fresh evaluations."""
+    """One body's fresh evaluations.
 
-    body: str  # its canonical name (`Space.canonical`)
-    morph: Morphology  # the body, host-side
-    values: np.ndarray  # (C,) float: the fitness of each fresh evaluation (one controller each)
-    diverged: np.ndarray  # (C,) bool: that evaluation's simulation diverged
-    params: Params | None  # (C, ...) the C trained controllers (ppo), else None
-    distance: np.ndarray  # (C,) metres forward in each evaluation's episodes (NaN: none ran)
-    upright: np.ndarray  # (C,) the fraction of each evaluation's episodes before a fall
+    Attributes:
+      body: its canonical name (`Space.canonical`)
+      morph: the body, host-side
+      values: (C,) float: the fitness of each fresh evaluation (one controller each)
+      diverged: (C,) bool: that evaluation's simulation diverged
+      params: (C, ...) the C trained controllers (ppo), else None
+      distance: (C,) metres forward in each evaluation's episodes (NaN: none ran)
+      upright: (C,) the fraction of each evaluation's episodes before a fall
+    """
+
+    body: str
+    morph: Morphology
+    values: np.ndarray
+    diverged: np.ndarray
+    params: Params | None
+    distance: np.ndarray
+    upright: np.ndarray
 
     @property
     def upright_whole(self) -> float:
@@ -46,10 +56,12 @@ class Confirmed:
 
     @property
     def mean(self) -> float:
+        """The body's confirmed fitness: the mean of its C values."""
         return float(np.mean(self.values, dtype=np.float64))
 
     @property
     def ci95(self) -> tuple[float, float]:
+        """The 95% Student-t interval of that mean over the C values."""
         return t_interval(self.values)
 
 

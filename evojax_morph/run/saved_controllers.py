@@ -29,15 +29,25 @@ DIR = "controllers"
 
 @dataclasses.dataclass(frozen=True)
 class SavedController:
-    """A body, the controller trained on it, and what rebuilds the networks."""
+    """A body, the controller trained on it, and what rebuilds the networks.
+
+    Attributes:
+      space: the space the body belongs to
+      fitness: kind "ppo": its task and PPO settings
+      seed: the run's seed
+      morph: one body
+      params: with K > 1 controllers, a leading (K,) axis
+      value: the body's fitness in the run
+      label: which body of the run: "best", "step 3"
+    """
 
     space: Space
-    fitness: FitnessConfig  # kind "ppo": its task and PPO settings
-    seed: int  # the run's seed
-    morph: Morphology  # one body
-    params: ppo.Params  # with K > 1 controllers, a leading (K,) axis
-    value: float  # the body's fitness in the run
-    label: str  # which body of the run: "best", "step 3"
+    fitness: FitnessConfig
+    seed: int
+    morph: Morphology
+    params: ppo.Params
+    value: float
+    label: str
 
 
 def has_controllers(cfg: FitnessConfig) -> bool:
