@@ -48,7 +48,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 import evojax_morph as em
-from evojax_morph.agents import list_agents
+from evojax_morph.agents import list_agents, predictor
 from evojax_morph.fitnesses import FitnessConfig
 from evojax_morph.fitnesses import table as table_fitness
 from evojax_morph.run.pipeline import RunConfig, agent_config, build
@@ -148,8 +148,11 @@ def pipeline(method: str, k: int, s: Settings):
     return build(cfg, agent_cfg=agent_cfg), agent_cfg
 
 
-def run_method(method: str, k: int, s: Settings, true: np.ndarray, sigs, table) -> dict:
-    """`s.seeds` runs of `method` at K = `k`, vmapped; the rows of the bodies they return."""
+def run_method(method: str, k: int, s: Settings, true: np.ndarray, sigs, table,
+               save_ensemble: str = "") -> dict:
+    """`s.seeds` runs of `method` at K = `k`, vmapped; the rows of the bodies they return. With
+    `save_ensemble` (the predictor), the first seed's trained ensemble is saved there
+    (`predictor.save_ensemble`: what `transfer` starts another run from)."""
     p, agent_cfg = pipeline(method, k, s)
     rows = rows_fn(sigs)
 
@@ -185,6 +188,8 @@ def run_method(method: str, k: int, s: Settings, true: np.ndarray, sigs, table) 
             sums[i] += np.bincount(r, fitness[i], minlength=len(true))
         curve.append(true[np.asarray(best_rows)].tolist())
         done += n
+    if save_ensemble:
+        predictor.save_ensemble(save_ensemble, jax.tree.map(lambda x: x[0], states.learner))
     best_rows, top = np.asarray(best_rows), np.argsort(-true)[:5]
     confirmed, confirmed_mean = confirm_rows(visits, sums, s, p.space, table, p.fitness,
                                              confirm_keys(method, k, s.steps * s.num_envs,
@@ -411,6 +416,9 @@ def main():
     parser.add_argument("--methods", default=",".join(list_agents()),
                         help="comma-separated subset of " + ",".join(list_agents()))
     parser.add_argument("--out", default="runs/figures")
+    parser.add_argument("--save-ensemble", default="",
+                        help="PATH.npz: the predictor's first seed's trained ensemble, for "
+                        "another run's transfer setting (at the last K run)")
     parser.add_argument("--swap-in", default="",
                         help="a tuning variant's data file (--tag): print the statistics with "
                         "its methods' runs in place of this file's, at the K both hold; no run")
@@ -452,7 +460,8 @@ def main():
             if method in summary["results"].get(str(k), {}):
                 continue
             start = time.time()
-            res = run_method(method, k, s, true, sigs, table)
+            res = run_method(method, k, s, true, sigs, table,
+                             args.save_ensemble if method == "predictor" else "")
             res["date"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
             res["device"] = summary["device"]  # a file resumed elsewhere holds runs of both
             summary["results"].setdefault(str(k), {})[method] = res

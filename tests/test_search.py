@@ -250,6 +250,29 @@ def test_predictor_stores_its_evaluations_and_revisits_only_when_every_child_was
     assert unevaluated_parents(m) == 0 and unevaluated_parents(run(True, reach=3)[2]) > 0
 
 
+def test_a_predictor_starts_from_a_transferred_ensemble(tmp_path):
+    """`save_ensemble` keeps a run's ensemble and prior networks; a predictor with `transfer`
+    starts from exactly them (not from its own key's networks); an ensemble of another shape
+    (here another width) is refused with the array named."""
+    from evojax_morph.agents import predictor
+
+    env = on_table("random", 2).env
+    make = lambda **kw: agents.make_agent("predictor", env, ensemble=2, first="m0", **kw)  # noqa: E731
+    source = make().init(jax.random.PRNGKey(0)).learner
+    path = tmp_path / "ensemble.npz"
+    predictor.save_ensemble(path, source)
+    moved = make(transfer=str(path)).init(jax.random.PRNGKey(1)).learner
+    fresh = make().init(jax.random.PRNGKey(1)).learner
+    for part in ("params", "prior"):
+        for x, y in zip(jax.tree.leaves(getattr(source, part)),
+                        jax.tree.leaves(getattr(moved, part)), strict=True):
+            np.testing.assert_array_equal(x, y)
+        assert any(not np.array_equal(x, z) for x, z in zip(
+            jax.tree.leaves(getattr(source, part)), jax.tree.leaves(getattr(fresh, part))))
+    with pytest.raises(ValueError, match=r"does not fit this space and these settings \(params"):
+        make(transfer=str(path), hidden=16).init(jax.random.PRNGKey(1))
+
+
 @pytest.mark.learning
 def test_predictor_learns_the_table():
     """After 60 steps of 8 evaluations on the Bad Walker table, the ensemble's mean prediction

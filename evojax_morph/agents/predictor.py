@@ -36,15 +36,23 @@ the clock of every comparison.
 
 With a predictor that knows nothing the choice is a random valid mutation, so the agent is
 regularized evolution plus what the predictor learned: what it adds is measured against that.
+
+`transfer` starts the ensemble (and its prior networks) from one trained elsewhere, saved by
+`save_ensemble` from another run's final state (another seed, another table or task of a space
+with the same kinds, sites and attributes): a policy that carries what it learned to a new
+problem. It goes on learning from the new run's evaluations; with `learning_starts` 0 it
+chooses from the first step.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import struct
 
@@ -78,6 +86,7 @@ class PredictorConfig:
     population: int = 0  # regularized evolution's P (0: 2 N)
     tournament: int = 0  # its S (0: P // 8)
     first: str = "walks"  # its first population ("walks" or "m0")
+    transfer: str = ""  # an ensemble saved by `save_ensemble` to start from ("": fresh networks)
 
     def parents(self) -> baselines.RegularizedEvolutionConfig:
         """The parent selection's settings."""
@@ -170,6 +179,35 @@ def make_predictor(space, cfg: PredictorConfig):
     return init, predict
 
 
+def save_ensemble(path, learner: PredictorLearner) -> None:
+    """The trained ensemble of one run's `learner` (no seed axis) and its prior networks, as an
+    .npz that `PredictorConfig.transfer` starts another run from."""
+    flat = {}
+    for part in ("params", "prior"):
+        for key, x in jax.tree_util.tree_flatten_with_path(getattr(learner, part))[0]:
+            flat[part + jax.tree_util.keystr(key)] = np.asarray(x)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **flat)
+
+
+def load_ensemble(path: str, template: dict, part: str) -> dict:
+    """The `part` ("params" or "prior") of the ensemble saved at `path`, in the shapes of
+    `template` (an ensemble `make_predictor`'s init makes). Raises ValueError where the file's
+    arrays do not fit them (another space's features, another width, depth or ensemble size)."""
+    with np.load(path) as saved:
+        flat = dict(saved)
+
+    def take(key, x):
+        name = part + jax.tree_util.keystr(key)
+        if name not in flat or flat[name].shape != x.shape:
+            raise ValueError(f"predictor: the ensemble in {path!r} does not fit this space and "
+                             f"these settings ({name}: saved "
+                             f"{flat[name].shape if name in flat else 'none'}, here {x.shape})")
+        return jnp.asarray(flat[name], x.dtype)
+
+    return jax.tree_util.tree_map_with_path(take, template)
+
+
 def make_policy(env: EvolutionEnv, cfg: PredictorConfig) -> Policy:
     """Selection (`next_evo`): store the children's evaluations, train the ensemble on them,
     choose the parents as regularized evolution does, then each parent's child by the
@@ -192,12 +230,14 @@ def make_policy(env: EvolutionEnv, cfg: PredictorConfig) -> Policy:
     def init(keys, obs: Observation) -> PredictorLearner:
         one = jax.tree.map(lambda x: x[0], obs.morph)
         key_net, key_prior = jax.random.split(keys[0])
-        params = init_net(key_net, one)
+        params, prior = init_net(key_net, one), init_net(key_prior, one)
+        if cfg.transfer:  # what another run learned, in place of fresh networks
+            params = load_ensemble(cfg.transfer, params, "params")
+            prior = load_ensemble(cfg.transfer, prior, "prior")
         data = Data(jax.tree.map(lambda x: jnp.zeros((cfg.buffer_size, *x.shape), x.dtype), one),
                     jnp.zeros(cfg.buffer_size), jnp.zeros((cfg.buffer_size, 2), jnp.uint32),
                     jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32))
-        return PredictorLearner(params, init_net(key_prior, one),
-                                jax.vmap(optimizer.init)(params), data,
+        return PredictorLearner(params, prior, jax.vmap(optimizer.init)(params), data,
                                 parents.init(keys[1:], obs), jnp.zeros(n, jnp.int32),
                                 jnp.zeros((), bool), {"loss": jnp.zeros(()),
                                                       "spread": jnp.zeros(())})
