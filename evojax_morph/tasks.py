@@ -18,6 +18,7 @@ from flax import struct
 
 from evojax_morph.physics.engines import Engine
 from evojax_morph.physics.templates import mjx
+from evojax_morph.registry import Registry
 from evojax_morph.spaces import Space
 
 
@@ -53,7 +54,7 @@ class TaskConfig:
 
 # The registered tasks by their names, as mujoco_playground registers environments with their
 # default configs. docs/fidelity.md says how each reads the source.
-TASKS = {t.name: t for t in (
+TASKS = Registry("task", (
     # The source's reading (NGE's fitness): the return pays the distance covered before the
     # episode ends, nothing for staying up, so falling forward is the easiest score.
     TaskConfig(name="distance"),
@@ -62,7 +63,7 @@ TASKS = {t.name: t for t in (
     # bodies' speeds (docs/fidelity.md): standing still for 5 s pays 125, walking 2 m 225, a
     # lunge of 1 m that falls after 1 s 75.
     TaskConfig(name="walk", healthy_reward=0.5),
-)}
+), sort=True)
 
 
 # What "walks" means everywhere (the run's printout, docs/results.md): a body confirmed at a
@@ -79,7 +80,7 @@ def gait_word(distance: float, upright_whole: float) -> str:
 
 def list_tasks() -> list[str]:
     """Names accepted by `make_task`, `TaskConfig.name` and the CLI's --task."""
-    return sorted(TASKS)
+    return TASKS.list()
 
 
 def make_task(name: str, **overrides) -> TaskConfig:
@@ -88,13 +89,12 @@ def make_task(name: str, **overrides) -> TaskConfig:
     Raises:
       ValueError: `name` is not a registered task, or an override is not a setting.
     """
-    if name not in TASKS:
-        raise ValueError(f"unknown task {name!r}; known tasks: {', '.join(list_tasks())}")
+    task = TASKS.get(name)
     fields = {f.name for f in dataclasses.fields(TaskConfig)} - {"name"}
     unknown = sorted(set(overrides) - fields)
     if unknown:
         raise ValueError(f"unknown task settings {unknown}; choose from {sorted(fields)}")
-    return dataclasses.replace(TASKS[name], **overrides)
+    return dataclasses.replace(task, **overrides)
 
 
 class Body(NamedTuple):

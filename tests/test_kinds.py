@@ -46,3 +46,32 @@ def test_the_check_sees_a_compare():
     tree = ast.parse('if cfg.physics == "warp" or space in ("constructor",): pass')
     compares = [n for n in ast.walk(tree) if isinstance(n, ast.Compare)]
     assert [_strings(c.comparators[0]) for c in compares] == [{"warp"}, {"constructor"}]
+
+
+def test_every_sort_of_kind_has_one_registry():
+    """Spaces, fitnesses, agents, engines and tasks are registered the same way
+    (`registry.Registry`): an unknown name's error names the sort and the known ones, `list`
+    keeps each sort's order, and a kind registered later is got back and listed."""
+    from evojax_morph import spaces, tasks
+    from evojax_morph.fitnesses import base as fitnesses
+    from evojax_morph.registry import Registry
+
+    found = {"space": spaces._REGISTRY, "fitness": fitnesses._REGISTRY,
+             "agent": agents._REGISTRY, "physics": engines._REGISTRY, "task": tasks.TASKS}
+    listed = {"space": em.list_spaces(), "fitness": em.list_fitnesses(),
+              "agent": agents.list_agents(), "physics": engines.list_engines(),
+              "task": em.list_tasks()}
+    for what, registry in found.items():
+        assert isinstance(registry, Registry) and registry.list() == listed[what]
+        try:
+            registry.get("nope")
+        except ValueError as e:
+            assert str(e) == (f"unknown {what} 'nope'; known {registry.plural}: "
+                              f"{', '.join(listed[what])}")
+        else:
+            raise AssertionError(f"{what}: an unknown name got back")
+    assert em.list_spaces() == sorted(em.list_spaces())  # sorted; agents as registered
+    assert agents.list_agents()[:2] == ["ddqn", "dqn"]
+    mine = Registry("thing", sort=True)
+    mine.register(tasks.TaskConfig(name="b"), tasks.TaskConfig(name="a"))
+    assert mine.list() == ["a", "b"] and mine.get("b").name == "b" and "a" in mine

@@ -21,6 +21,7 @@ from typing import Any, NamedTuple
 from evojax_morph.agents import a2c, baselines, dqn, predictor, qrdqn
 from evojax_morph.agents.base import Agent, AgentState, Policy, RunOptions, Transition, from_policy
 from evojax_morph.mdp import EvolutionEnv
+from evojax_morph.registry import Registry
 
 
 class AgentKind(NamedTuple):
@@ -33,7 +34,7 @@ class AgentKind(NamedTuple):
     check: Callable | None = None  # check(num_envs, population, tournament): ValueError if not
 
 
-_REGISTRY: dict[str, AgentKind] = {k.name: k for k in (
+_REGISTRY: Registry[AgentKind] = Registry("agent", (
     AgentKind("ddqn", dqn.DQNConfig, dqn.make_policy),
     AgentKind("dqn", dqn.PlainDQNConfig, dqn.make_policy),
     AgentKind("qrdqn", qrdqn.QRDQNConfig, qrdqn.make_policy),
@@ -44,19 +45,17 @@ _REGISTRY: dict[str, AgentKind] = {k.name: k for k in (
     AgentKind("regularized_evolution", baselines.RegularizedEvolutionConfig,
               baselines.make_regularized_evolution, baselines.check_regularized_evolution),
     AgentKind("predictor", predictor.PredictorConfig, predictor.make_policy, predictor.check),
-)}
+))
 
 
 def list_agents() -> list[str]:
     """Names accepted by `make_agent`, in the order the CLI lists them."""
-    return list(_REGISTRY)
+    return _REGISTRY.list()
 
 
 def get_agent(name: str) -> AgentKind:
     """The agent registered as `name`."""
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown agent {name!r}; choose one of {', '.join(_REGISTRY)}")
-    return _REGISTRY[name]
+    return _REGISTRY.get(name)
 
 
 def settings_problem(name: str, num_envs: int, population: int = 0,

@@ -12,6 +12,7 @@ from flax import struct
 
 from evojax_morph.physics.engines import AUTO, list_engines, resolve
 from evojax_morph.ppo import Params, PPOConfig
+from evojax_morph.registry import Registry
 from evojax_morph.spaces import Space
 from evojax_morph.tasks import TaskConfig
 
@@ -50,7 +51,7 @@ class FitnessConfig:
     def __post_init__(self):
         if self.physics not in list_engines():
             raise ValueError(
-                f"unknown physics {self.physics!r}; choose one of {', '.join(list_engines())}"
+                f"unknown physics {self.physics!r}; known physics: {', '.join(list_engines())}"
             )
         kind = get_fitness(self.kind)
         if kind.engines and self.physics not in kind.engines:
@@ -178,21 +179,19 @@ def resolve_physics(kind: str, name: str) -> tuple[str, str]:
     return resolve(name)
 
 
-_REGISTRY: dict[str, Fitness] = {}
+_REGISTRY: Registry[Fitness] = Registry("fitness", plural="fitnesses", sort=True)
 
 
 def register(*kinds: Fitness) -> None:
     """Makes `kinds` known by their names (see `evojax_morph/fitnesses/__init__.py`)."""
-    _REGISTRY.update({k.name: k for k in kinds})
+    _REGISTRY.register(*kinds)
 
 
 def list_fitnesses() -> list[str]:
     """Names accepted by `get_fitness` and `FitnessConfig.kind`."""
-    return sorted(_REGISTRY)
+    return _REGISTRY.list()
 
 
 def get_fitness(name: str) -> Fitness:
     """The fitness kind registered as `name`."""
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown fitness {name!r}; choose one of {', '.join(list_fitnesses())}")
-    return _REGISTRY[name]
+    return _REGISTRY.get(name)

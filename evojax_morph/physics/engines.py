@@ -30,6 +30,7 @@ import jax.numpy as jnp
 
 from evojax_morph.morphology import tree_select
 from evojax_morph.physics.templates import SpaceLike, mjx
+from evojax_morph.registry import Registry
 
 
 class Engine(NamedTuple):
@@ -131,22 +132,20 @@ WARP = Engine(
     gpu_controllers=8,
 )
 
-_REGISTRY: dict[str, Engine] = {e.name: e for e in (JAX, WARP)}
+_REGISTRY: Registry[Engine] = Registry("physics", (JAX, WARP), plural="physics")
 AUTO = "auto"
 
 
 def foreign(name: str) -> bool:
     """Whether engine `name` steps by a foreign call (`Engine.foreign`); no check that it runs
     here, so that a fitness can be split before it is built."""
-    return name in _REGISTRY and _REGISTRY[name].foreign
+    return name in _REGISTRY and _REGISTRY.get(name).foreign
 
 
 def registered(name: str) -> Engine:
     """The engine registered as `name`, not checked that it runs here: its traits, read before
     a JAX backend starts; a ValueError for an unknown name."""
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown physics {name!r}; choose one of {', '.join(list_engines())}")
-    return _REGISTRY[name]
+    return _REGISTRY.get(name)
 
 
 def warp_imports() -> bool:
@@ -160,12 +159,12 @@ def may_take(name: str) -> list[Engine]:
     one, XLA's GPU flags change nothing); an unknown name none (its user says so)."""
     if name == AUTO:
         return [JAX, WARP] if warp_imports() else [JAX]
-    return [_REGISTRY[name]] if name in _REGISTRY else []
+    return [_REGISTRY.get(name)] if name in _REGISTRY else []
 
 
 def list_engines() -> list[str]:
     """Names accepted by `get_engine` and `FitnessConfig.physics` ("auto" is resolved first)."""
-    return list(_REGISTRY)
+    return _REGISTRY.list()
 
 
 def get_engine(name: str) -> Engine:

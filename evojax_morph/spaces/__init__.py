@@ -1,32 +1,31 @@
 """Morphology spaces, registered by name.
 
-To add a space: subclass `Space` in a module of this package and list it in `_REGISTRY`.
+To add a space: subclass `Space` in a module of this package and list it in `_REGISTRY`
+(`registry.Registry`).
 """
 
 from __future__ import annotations
 
+from evojax_morph.registry import Registry
 from evojax_morph.spaces.bad_walker import BadWalker
 from evojax_morph.spaces.base import Space
 from evojax_morph.spaces.constructor import Constructor
 from evojax_morph.spaces.crawler import Crawler, CrawlerNear
 from evojax_morph.spaces.length_walker import LengthWalker
 
-_REGISTRY: dict[str, type[Space]] = {
-    cls.name: cls for cls in (BadWalker, Constructor, Crawler, CrawlerNear, LengthWalker)
-}
+_REGISTRY: Registry[type[Space]] = Registry(
+    "space", (BadWalker, Constructor, Crawler, CrawlerNear, LengthWalker), sort=True)
 
 
 def list_spaces() -> list[str]:
     """Names accepted by `make_space`."""
-    return sorted(_REGISTRY)
+    return _REGISTRY.list()
 
 
 def get_space(name: str) -> type[Space]:
     """The space class registered as `name`: its rules (`Space.gpu_defaults`) without building
     its template."""
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown space {name!r}; known spaces: {', '.join(list_spaces())}")
-    return _REGISTRY[name]
+    return _REGISTRY.get(name)
 
 
 def make_space(name: str, **kwargs) -> Space:
