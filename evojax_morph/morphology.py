@@ -27,11 +27,11 @@ class Morphology:
       attrs: (max_nodes, num_attrs) float32: continuous attributes, e.g. length
     """
 
-    active: jax.Array
-    parent: jax.Array
-    kind: jax.Array
-    site: jax.Array
-    attrs: jax.Array
+    active: jax.Array  # (max_nodes,) bool
+    parent: jax.Array  # (max_nodes,) int32
+    kind: jax.Array  # (max_nodes,) int32
+    site: jax.Array  # (max_nodes,) int32
+    attrs: jax.Array  # (max_nodes, num_attrs) float32
 
     @property
     def max_nodes(self) -> int:

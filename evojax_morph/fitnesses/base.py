@@ -92,14 +92,14 @@ class FitnessResult:
       env_steps: control steps spent per morphology
     """
 
-    fitness: jax.Array
-    fitness_std: jax.Array
-    diverged: jax.Array
-    params: Params | None
-    train_return: jax.Array
-    entropy: jax.Array
-    distance: jax.Array
-    upright: jax.Array
+    fitness: jax.Array  # (B,) float
+    fitness_std: jax.Array  # (B,) float
+    diverged: jax.Array  # (B,) bool
+    params: Params | None  # (B, ...)
+    train_return: jax.Array  # (B,) float
+    entropy: jax.Array  # (B,) float
+    distance: jax.Array  # (B,) float
+    upright: jax.Array  # (B,) float
     env_steps: int = struct.field(pytree_node=False)
 
 

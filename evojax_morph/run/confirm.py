@@ -43,11 +43,11 @@ class Confirmed:
 
     body: str
     morph: Morphology
-    values: np.ndarray
-    diverged: np.ndarray
-    params: Params | None
-    distance: np.ndarray
-    upright: np.ndarray
+    values: np.ndarray  # (C,) float
+    diverged: np.ndarray  # (C,) bool
+    params: Params | None  # (C, ...)
+    distance: np.ndarray  # (C,) float
+    upright: np.ndarray  # (C,) float
 
     @property
     def upright_whole(self) -> float:
