@@ -35,28 +35,34 @@ CREATE TABLE IF NOT EXISTS shapes (body TEXT PRIMARY KEY, morphology TEXT NOT NU
 COLUMNS = "step, evolution, body, fitness, fitness_std, diverged, parent, distance, upright"
 
 
-def _digest(rows, found):
-    """The running SHA-256 `found` (hashlib's) updated with the log's `rows` (tuples of
-    COLUMNS), each as a line of JSON (floats written exactly); returns it."""
+def _digest(rows, found) -> int:
+    """Updates the running SHA-256 `found` (hashlib's) with the log's `rows` (tuples of
+    COLUMNS), each as a line of JSON (floats written exactly); returns how many there were."""
+    count = 0
     for row in rows:
         found.update((json.dumps(list(row)) + "\n").encode())
-    return found
+        count += 1
+    return count
+
+
+def _read(db: sqlite3.Connection, step: int):
+    """(rows, running SHA-256) of the log in `db` up to `step`, in the order they were added."""
+    found = hashlib.sha256()
+    return _digest(db.execute(f"SELECT {COLUMNS} FROM bodies WHERE step <= ? "
+                              "ORDER BY step, evolution", (step,)), found), found
 
 
 def proof(path: Path, step: int) -> dict:
     """{"rows", "sha256"} of the log in the file `path` up to `step` (`BodyLog.proof`), read
     without changing it; a missing file holds no rows. Raises sqlite3's error where it does
     not read (damaged, cut short)."""
-    found, rows = hashlib.sha256(), 0
-    if Path(path).exists():
-        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
-        try:
-            for row in db.execute(f"SELECT {COLUMNS} FROM bodies WHERE step <= ? "
-                                  "ORDER BY step, evolution", (step,)):
-                _digest([row], found)
-                rows += 1
-        finally:
-            db.close()
+    if not Path(path).exists():
+        return {"rows": 0, "sha256": hashlib.sha256().hexdigest()}
+    db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    try:
+        rows, found = _read(db, step)
+    finally:
+        db.close()
     return {"rows": rows, "sha256": found.hexdigest()}
 
 
@@ -100,8 +106,7 @@ class BodyLog:
         ]
         self.db.executemany(f"INSERT INTO bodies ({COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
                             rows)
-        self._hash = _digest(rows, self._hash)
-        self._rows += len(rows)
+        self._rows += _digest(rows, self._hash)
 
     def proof(self) -> dict:
         """{"rows": the evaluations added, "sha256": of their rows in order}: what a checkpoint
@@ -116,11 +121,7 @@ class BodyLog:
         on from the proof of those before."""
         self.db.execute("DELETE FROM bodies WHERE step > ?", (step,))
         self.db.commit()
-        rows = self.db.execute(f"SELECT {COLUMNS} FROM bodies ORDER BY step, evolution")
-        self._rows, self._hash = 0, hashlib.sha256()
-        for row in rows:
-            self._hash = _digest([row], self._hash)
-            self._rows += 1
+        self._rows, self._hash = _read(self.db, step)
 
     def close(self) -> None:
         self.db.close()
