@@ -43,7 +43,13 @@ import evojax_morph as em
 from evojax_morph.physics.determinism import full_precision
 from evojax_morph.run import plots
 from evojax_morph.run.confirm import t_interval
-from evojax_morph.run.pipeline import NO_OP, agent_config, build, make_greedy_rollout
+from evojax_morph.run.pipeline import (
+    NO_OP,
+    agent_config,
+    build,
+    make_greedy_evaluation,
+    make_greedy_walk,
+)
 from experiments.build_tables import revision
 from experiments.common import Setup, band, episode_returns, holm, plt, run_agent, run_config, save
 
@@ -174,12 +180,13 @@ def unroll(name: str, of: str, args) -> bool:
     g = groups(args)[of]
     p = build(run_config(g.agent, setup_of(g, args)))
     trained = pickle.loads(agents.read_bytes())
-    rollout = make_greedy_rollout(p)
+    walk, evaluate = make_greedy_walk(p), make_greedy_evaluation(p)  # as a run does
     unrolls = []
     for seed in range(g.seeds):
         learner, first = jax.tree.map(lambda x, s=seed: x[s], (trained["learner"],
                                                                trained["first"]))
-        unrolls.append(rollout(learner, first, jax.random.PRNGKey(100 + seed)))
+        key = jax.random.PRNGKey(100 + seed)
+        unrolls.append(evaluate(walk(learner, first, key), key))
     morphs = [m for u in unrolls for m in u.morphs]
     confirmed = iter(confirm(p.space, morphs, group_key(12, name), args))
     data = {"unrolls": [{"actions": u.actions,

@@ -265,16 +265,18 @@ def test_every_agent_shapes_masks_and_one_trace(name):
 
 
 def test_greedy_rollout_is_the_step_by_step_greedy_walk():
-    """`make_greedy_rollout` (the mutations first, then every body in one fitness call) against
-    the agent's greedy walk stepped one `env.step` at a time, on the deterministic predefined
-    fitness, where a fresh controller and an inherited one score a body alike: the same bodies,
-    actions and fitness, m0 first."""
-    from evojax_morph.run.pipeline import make_greedy_rollout
+    """The run's greedy path (`make_greedy_walk`: the mutations first; then
+    `make_greedy_evaluation`: every body in one fitness call) against the agent's greedy walk
+    stepped one `env.step` at a time, on the deterministic predefined fitness, where a fresh
+    controller and an inherited one score a body alike: the same bodies, actions and fitness,
+    m0 first."""
+    from evojax_morph.run.pipeline import make_greedy_evaluation, make_greedy_walk
 
     p = build(RunConfig(space="bad_walker", fitness="predefined", num_envs=4, horizon=4,
                         hidden=16, learning_starts=4, explore_steps=2))
     state, _ = p.agent.chunk(jax.jit(p.agent.init)(jax.random.PRNGKey(0)), 8)
-    got = make_greedy_rollout(p)(state.learner, state.first, jax.random.PRNGKey(1))
+    key = jax.random.PRNGKey(1)
+    got = make_greedy_evaluation(p)(make_greedy_walk(p)(state.learner, state.first, key), key)
 
     env, evo = p.greedy_env, jax.tree.map(lambda x: x[:1], state.first)
     want = [(evo.morph, evo.fitness[0])]

@@ -26,10 +26,12 @@ from PIL import Image
 import evojax_morph as em
 from evojax_morph import ppo, render
 from evojax_morph.physics import opengl
+from evojax_morph.physics.engines import get_engine
 from evojax_morph.run import bodylog, saved_controllers, video
 from evojax_morph.run import confirm_stage as confirming
 from evojax_morph.run.checkpoints import Damaged
 from evojax_morph.run.pipeline import Greedy, RunConfig, build
+from evojax_morph.tasks import Locomotion
 from experiments import controller_engines, crawler_study
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -229,19 +231,21 @@ def test_the_studys_best_body_keeps_its_typical_controller_and_its_video(run_dir
 @pytest.mark.slow  # its replay program: a minute cold on 2 cores
 def test_replay_is_the_fitness_evaluation_episode(run_dir):
     """The replay of controller k from reset key r returns what the PPO fitness's evaluation
-    (`ppo.make_evaluate`, which scores every trained controller) returns for the same key."""
+    (`ppo.make_evaluate_learners`, which scores every trained controller) returns for it."""
     out, p, _, _ = run_dir
     saved = em.load_controller(saved_controllers.body_dir(out, "best"))
     cfg = dataclasses.replace(saved.fitness.ppo, eval_episodes=1)
-    evaluate = jax.jit(ppo.make_evaluate(saved.space, saved.fitness.task, cfg))
-    model = saved.space.mjx_model(saved.morph)
+    env = Locomotion(saved.space, saved.fitness.task)
+    evaluate = jax.jit(ppo.make_evaluate_learners(saved.space, env, get_engine("jax"), cfg))
+    models = jax.tree.map(lambda x: x[None], saved.space.mjx_model(saved.morph))  # B = 1
     key = jax.random.PRNGKey(3)
     replays = []
     for k in range(2):
-        one = jax.tree.map(lambda x, k=k: x[k], saved.params)
-        returns, _ = evaluate(key, model, one)
+        one = jax.tree.map(lambda x, k=k: x[k : k + 1], saved.params)  # L = 1
+        episodes = evaluate(key[None], models, one)
         rep = em.replay(saved, jax.random.split(key, 1)[0], controller=k)
-        np.testing.assert_allclose(rep.episode_return, float(returns[0]), rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(rep.episode_return, float(episodes.returns[0, 0]),
+                                   rtol=1e-5, atol=1e-5)
         assert rep.qpos.shape == (len(rep.reward) + 1, saved.space.template.nq)
         replays.append(rep)
     assert not np.allclose(replays[0].qpos[-1], replays[1].qpos[-1])  # two controllers

@@ -399,11 +399,11 @@ import jax
 import evojax_morph as em
 from mujoco.mjx import warp as mjx_warp
 from warp._src.context import user_modules
-from evojax_morph.physics import warp as ew
+from evojax_morph.physics import warp_kernels
 space = em.make_space("crawler")
-ew.preload(jax.local_devices(), space).result()
+warp_kernels.preload(jax.local_devices(), space).result()
 package = mjx_warp.mujoco_warp.__name__ + "._src."
-names = [package + n for n in ew.FIXED_MODULES] + ["mujoco.mjx.warp.ffi"]
+names = [package + n for n in warp_kernels.FIXED_MODULES] + ["mujoco.mjx.warp.ffi"]
 preloaded = {n: set(m.execs) for n, m in user_modules.items() if m.execs}
 assert all(preloaded.get(n) for n in names), preloaded
 made = [n for n in preloaded if "." not in n]  # modules of one kernel, made from the model
@@ -425,7 +425,7 @@ print("MODULES", len(named), "MADE", len(made), "NEW", len(new), new)
 @requires_warp
 @pytest.mark.slow  # a PPO program compiled in a fresh process
 def test_preload_holds_the_modules_a_step_loads():
-    """`warp.preload` with a space compiles what a step would compile of MuJoCo Warp's named
+    """`warp_kernels.preload` with a space compiles what a step would compile of MuJoCo Warp's named
     modules (and MJX's Warp call) and of the modules of one kernel it makes from the model, at
     the block sizes the step launches them at: in a fresh process, after it, a PPO evaluation
     (training, then episodes) loads no other module and no other variant of one, but the

@@ -93,21 +93,6 @@ def make_evolution(env: EvolutionEnv, cfg: None = None) -> Policy:
                   learn=_no_learning, scores=None, next_evo=next_evo)
 
 
-def make_single_draw_evolution(env: EvolutionEnv, cfg: None = None) -> Policy:
-    """The (mu + lambda) rule of the results before issue 60, kept to show its trap: every
-    body mutated, the fittest N of parents and children by the one draw each was evaluated
-    at, never measured again, so a lucky draw survives for ever. Not registered."""
-    del cfg
-
-    def next_evo(env, learner, keys, parents, children, first, done):
-        del keys, first, done
-        pool = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), parents, children)
-        _, keep = jax.lax.top_k(pool.fitness, env.num_envs)
-        return learner, _take(pool, keep).replace(steps=jnp.zeros(env.num_envs, jnp.int32))
-
-    return make_random(env)._replace(next_evo=next_evo)
-
-
 # REGULARIZED (AGING) EVOLUTION
 
 

@@ -113,6 +113,13 @@ def _warp():
     return warp
 
 
+def _warp_kernels():
+    """evojax_morph.physics.warp_kernels, imported on first use (as `_warp`)."""
+    from evojax_morph.physics import warp_kernels
+
+    return warp_kernels
+
+
 _flat = lambda fn: lambda model, data: jax.vmap(fn, (None, 0))(model, data)
 
 WARP = Engine(
@@ -128,7 +135,7 @@ WARP = Engine(
     foreign=True,
     graph_capture=True,
     unreproducible="on a GPU MuJoCo Warp orders contacts by thread timing",
-    preload=lambda devices, space: _warp().preload(devices, space),
+    preload=lambda devices, space: _warp_kernels().preload(devices, space),
     gpu_controllers=8,
 )
 

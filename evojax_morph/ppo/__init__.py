@@ -21,8 +21,7 @@ The pieces, one factory each, as purejaxrl's scans nest: `make_train` (K control
 scan) and `make_learn` (GAE, then epochs > minibatches of `make_loss`); then
 `make_evaluate_learners` scores the trained controllers. Their calls run in named scopes
 ("reset", "collect", "learn", "evaluate"), to which xprof's trace viewer attributes the device's
-time (a trace of `python -m experiments.bench_fitness --trace DIR` at git 88d6bf1); they
-change no computation.
+time (`python -m experiments.bench_fitness --trace DIR`); they change no computation.
 """
 
 from __future__ import annotations
@@ -78,34 +77,6 @@ def make_policy(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfi
     """`policy(params, obs) -> action`: the deterministic actions (..., A) of one controller
     (no leading K axis) for (..., obs_size) observations, as the evaluation episodes act."""
     return make_deterministic_policy(make_networks(Locomotion(space, task_cfg), cfg))
-
-
-def make_evaluate(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig = PPOConfig()):
-    """`evaluate(key, model, params) -> (returns, diverged)`, both (eval_episodes,): one
-    controller's deterministic policy (`make_policy`) for `eval_episodes` episodes from resets
-    with the keys `split(key, eval_episodes)`, as the fitness scores a trained controller."""
-    env = Locomotion(space, task_cfg)
-    policy = make_policy(space, task_cfg, cfg)
-
-    def evaluate(key, model, params: Params):
-        state = jax.vmap(env.reset, (0, None))(jax.random.split(key, cfg.eval_episodes), model)
-        step = jax.vmap(env.step, (None, 0, 0))
-
-        def body(carry, _):
-            state, returns, alive, diverged = carry
-            state = step(model, state, policy(params, state.obs))
-            returns = returns + jnp.where(alive, state.reward, 0.0)
-            diverged = diverged | (alive & state.diverged)
-            return (state, returns, alive & ~state.done, diverged), None
-
-        zeros = jnp.zeros(cfg.eval_episodes, state.reward.dtype)
-        alive = jnp.ones(cfg.eval_episodes, bool)
-        (_, returns, _, diverged), _ = jax.lax.scan(
-            body, (state, zeros, alive, ~alive), length=task_cfg.episode_length
-        )
-        return returns, diverged
-
-    return evaluate
 
 
 def make_train(
@@ -357,7 +328,7 @@ class Episodes(NamedTuple):
 def make_evaluate_learners(space: Space, env: Locomotion, engine: Engine, cfg: PPOConfig):
     """`evaluate(keys (L,), models (B,), params (L, ...)) -> Episodes` of (L, eval_episodes)
     arrays: L learners' deterministic policies, the episodes of learner l reset with
-    `split(keys[l], eval_episodes)`, as `make_evaluate` scores one controller."""
+    `split(keys[l], eval_episodes)`."""
     policy = jax.vmap(make_deterministic_policy(make_networks(env, cfg)))
     episodes = cfg.eval_episodes
 

@@ -13,28 +13,14 @@ programs the calls would compile themselves: no result changes. `EVOJAX_MORPH_WA
 it off.
 
 Why not compile on the thread with Warp on a GPU: a Warp call captures a CUDA graph of XLA's
-stream whenever it meets new buffer addresses, and a compile that misses the persistent cache
-autotunes on that stream; one during the other breaks the capture (`Warp CUDA error 901`, then
-an error or an abort: `experiments/warp_thread_race.py compile`, retired, at git 7a9dc9b, died
-so in 2 of 2 runs on an H100). Holding Warp's call lock while compiling deadlocked instead (the
-Warp call waits for the lock, the compile for the device), and Warp's JAX graph mode fails
-outright. So `wait` compiles such a program on the calling thread, where no Warp call can be
-running: XLA runs them inside the call that made them. Lowering launches no kernel and survived
-(`lower` mode: 3 of 3 runs, 21 to 23 lowerings during 30 calls). The MJX functions it runs that
-set Warp's default device for the whole process hold Warp's call lock
-(`evojax_morph.physics.warp.callback_lock`).
-docs/benchmarks.md, "Compiling on the second thread breaks Warp's graph capture". Compiling on
-the thread only until m0's call (before any Warp call) gained nothing on an H200 (git e8cb251,
-reverted): the first chunk's compile ended 20.4 s after m0's, as late as on the main thread.
-
-With Warp on several GPUs the run turns the warmup off (`driver.execute`): runs on 2 H100s
-stopped in the greedy rollout after their steps, 4 of 4 with the warmup on. It was not the
-only cause: with it off 1 of 2 hung too, the rollout (then a scan of one-body fitness calls)
-split across the GPUs; on one device a run so finished. Its walk still runs on one device
-(`pipeline.make_greedy_walk`); its bodies are now evaluated in the confirm stage's batched call,
-split as that call was in the runs that finished (with them in it: not yet run on 2 GPUs).
-Whether the warmup could come back there was not tried. docs/benchmarks.md, "The Warp fitness
-across GPUs".
+stream, and a compile that misses the persistent cache autotunes on that stream; one during the
+other breaks the capture (`Warp CUDA error 901`). So `wait` compiles such a program on the
+calling thread, where no Warp call can be running; lowering launches no kernel and stays on the
+thread. The MJX functions it runs that set Warp's default device for the whole process hold
+Warp's call lock (`evojax_morph.physics.warp.callback_lock`). With Warp on several GPUs the run
+turns the warmup off (`driver.execute`). What was measured, and what was tried and reverted:
+docs/benchmarks.md, "Compiling on the second thread breaks Warp's graph capture" and "The Warp
+fitness across GPUs".
 """
 
 from __future__ import annotations

@@ -209,14 +209,6 @@ def make_greedy_evaluation(p: Pipeline):
     return evaluate
 
 
-def make_greedy_rollout(p: Pipeline):
-    """`rollout(learner, first, key) -> Greedy`: the greedy walk from m0 (`make_greedy_walk`),
-    then its horizon + 1 bodies evaluated with fresh controllers in one fitness call
-    (`make_greedy_evaluation`), both with `key`. A run does the two apart (`driver`)."""
-    walk, evaluate = make_greedy_walk(p), make_greedy_evaluation(p)
-    return lambda learner, first, key: evaluate(walk(learner, first, key), key)
-
-
 def _at(tree, i: int):
     """Entry `i` of every array of `tree`."""
     return jax.tree.map(lambda x: x[i], tree)
