@@ -17,6 +17,21 @@ import evojax_morph as em
 CACHE = em.persistent_cache()
 
 
+# The default set (pyproject's -m) compiles at LLVM's lowest optimisation: its time is mostly
+# compiling small programs, and the cold set took 7 min 58 s so against 10 min 20 s
+# (docs/benchmarks.md, "The test suite"). The learning and slow sets mostly run, and keep XLA's
+# default; so does a run of the library.
+DEFAULT_SET = "not learning and not slow"
+FAST_COMPILE = "--xla_backend_optimization_level=0"
+
+
+def pytest_configure(config):
+    """The default set's XLA flag, set before any test starts JAX's backend (which reads it)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if config.getoption("markexpr") == DEFAULT_SET and "optimization_level" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} {FAST_COMPILE}".strip()
+
+
 @pytest.fixture(scope="session", params=["bad_walker", "constructor", "length_walker"])
 def space(request):
     return em.make_space(request.param)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -146,6 +146,8 @@ class Fitness(NamedTuple):
     check(inputs): raises ValueError, saying why, where the files the kind reads are missing or
       do not fit the space or the task; run before anything compiles (the `run` command's exit
       2).
+    check_bodies(space, cfg, morphs): raises ValueError naming a body of the batch the kind
+      cannot evaluate; `em.evaluate` asks before its call (the table's bodies outside it).
     """
 
     name: str
@@ -157,6 +159,7 @@ class Fitness(NamedTuple):
     engines: tuple[str, ...] | None = None
     default_task: Callable[[Inputs], str] = lambda inputs: "walk"
     check: Callable[[Inputs], None] = lambda inputs: None
+    check_bodies: Callable[[Space, FitnessConfig, Any], None] = lambda space, cfg, morphs: None
 
 
 def _bound(kind: Fitness) -> str:

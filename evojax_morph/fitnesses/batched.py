@@ -93,6 +93,7 @@ def evaluate(
             f"morphs must be a batch of shape (B, {space.max_nodes}) for {space.name}; "
             f"got active of shape {morphs.active.shape} (use em.stack([...]))"
         )
+    get_fitness(cfg.kind).check_bodies(space, cfg, morphs)
     keys = _per_morphology_keys(key, morphs.active.shape[0])
     init, evaluate_batch = _compiled(space, cfg, batch_mesh() if mesh is None else mesh)
     if init_params is None and init is not None:

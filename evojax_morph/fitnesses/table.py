@@ -162,6 +162,9 @@ def validate(cfg: FitnessConfig) -> None:
                          "`python -m experiments.build_tables --space SPACE --out PATH`)")
 
 
+_signatures = jax.jit(jax.vmap(signature))  # (B, 2) of a batch of bodies
+
+
 @functools.lru_cache(maxsize=8)
 def _prepared(space: Space, path: str, mtime_ns: int):
     """(table, (T, 2) signatures) of a checked table; cached per file version."""
@@ -172,7 +175,7 @@ def _prepared(space: Space, path: str, mtime_ns: int):
     if not table.complete:
         raise ValueError(f"the table {path} is incomplete ({table.done[:, :table.base].sum()} "
                          f"of {table.done[:, :table.base].size} results): resume its build")
-    sigs = np.asarray(jax.jit(jax.vmap(signature))(table.bodies))
+    sigs = np.asarray(_signatures(table.bodies))
     if len({tuple(s) for s in sigs}) != len(sigs):
         raise ValueError(f"two bodies of the table {path} share a signature")
     for i in range(len(table.names)):
@@ -284,7 +287,6 @@ def make(space: Space, cfg: FitnessConfig):
     distance, upright = jnp.asarray(table.distance), jnp.asarray(table.upright)
     measured = jnp.asarray(table.done)
     env_steps = k * int(table.meta.get("env_steps_per_result", 0))
-    name = table_path(space, cfg)
 
     def one(key: jax.Array, m: Morphology):
         hit = (sigs == signature(m)).all(-1)  # (T,)
@@ -299,32 +301,32 @@ def make(space: Space, cfg: FitnessConfig):
         return (mean(fitness), jnp.where(found, fitness[row, draws].std(), nan),
                 diverged[row, draws].any() | ~found, found, mean(distance), mean(upright))
 
-    def report(found, morphs):
-        """Host side: raises naming the first body not found (runs only when one is missing,
-        or under vmap, where it checks)."""
-        found = np.asarray(found)
-        if found.all():
-            return
-        flat = jax.tree.map(lambda x: np.asarray(x).reshape((-1,) + x.shape[found.ndim:]),
-                            morphs)
-        i = int(np.flatnonzero(~found.reshape(-1))[0])
-        body = space.canonical(jax.tree.map(lambda x: x[i], flat))
-        raise ValueError(f"body {body} is not in the {space.name} table {name}")
-
     def evaluate(keys: jax.Array, morphs: Morphology, params) -> FitnessResult:
+        # A body outside the table gets NaN, flagged diverged: a table that loads holds every
+        # body reachable from m0 (`_check_closed`), so agents never meet one, and `em.evaluate`
+        # names such a body before its call (`check_bodies`). No host callback here: a program
+        # with one is never kept in JAX's persistent cache, so every run would compile it anew.
         f, std, div, found, dist, up = jax.vmap(one)(keys, morphs)
-        # A body outside the table gets NaN (diverged) and a host-side error; a table that
-        # loads holds every body reachable from m0 (`_check_closed`), so agents never meet one.
-        jax.lax.cond(found.all(), lambda *_: None,
-                     lambda *a: jax.debug.callback(report, *a), found, morphs)
         zeros = jnp.zeros_like(f)
         return FitnessResult(f, std, div, params, zeros, zeros, dist, up, env_steps=env_steps)
 
     return None, evaluate
 
 
+def check_bodies(space: Space, cfg: FitnessConfig, morphs: Morphology) -> None:
+    """Raises a ValueError naming the first of the batch `morphs` that the table lacks."""
+    table, sigs = load(space, cfg)
+    known = {row.tobytes() for row in sigs}
+    batch = np.asarray(_signatures(morphs))
+    for i, sig in enumerate(batch):
+        if sig.tobytes() not in known:
+            body = space.canonical(jax.tree.map(lambda x, i=i: x[i], morphs))
+            raise ValueError(f"body {body} is not in the {space.name} table "
+                             f"{table_path(space, cfg)}")
+
+
 FITNESS = Fitness(name="table", validate=validate, scale=lambda space: 100.0, make=make,
-                  engines=(), default_task=default_task, check=check)
+                  engines=(), default_task=default_task, check=check, check_bodies=check_bodies)
 
 
 def stacked(bodies: list[Morphology]) -> Morphology:
