@@ -51,6 +51,20 @@ def percent_to_markdown(text: str) -> str:
     return "\n\n".join(out) + "\n"
 
 
+def _printed(script: str) -> str:
+    """What `script` printed when its test last stored it (SCRIPT_output.txt beside it, its first
+    line naming the script's digest: tests/test_tutorial.py), as a section of Markdown."""
+    path = os.path.join(_root, script[: -len(".py")] + "_output.txt")
+    if not os.path.exists(path):
+        return ""
+    with open(path, encoding="utf-8") as f:
+        lines = f.read().splitlines()[1:]
+    body = "\n".join(lines)
+    return (f"\n## What it printed\n\nOn a 2-core CPU, stored by its test "
+            f"(`tests/test_tutorial.py`); numbers differ a little between CPUs.\n\n"
+            f"```text\n{body}\n```\n")
+
+
 def _listing(folder: str) -> str:
     """The Markdown of a page listing the files of `folder` (a repository path under docs/)."""
     names = sorted(os.listdir(os.path.join(_root, folder)))
@@ -71,7 +85,7 @@ def on_files(files, config):
         with open(os.path.join(_root, path), encoding="utf-8") as f:
             text = f.read()
         if path.endswith(".py"):
-            text = percent_to_markdown(text)
+            text = percent_to_markdown(text) + _printed(path)
         files.append(File.generated(config, page, content=text))
         _repo_path[page] = path
     for folder, dirs, _ in os.walk(config.docs_dir):

@@ -69,18 +69,12 @@ def evaluate(
       space: the space the morphologies belong to.
       morphs: a batch of B >= 1 morphologies (`em.stack`), arrays of shape (B, max_nodes, ...).
       key: one PRNG key, split into one per morphology, or a (B,) array of keys: morphology i
-        then uses keys[i], whatever else is in the batch. What that fixes: evaluating given
-        controllers (`init_params` with `train_steps=0`) gives a body the same fitness alone
-        as in any batch, up to float rounding (tests/test_fitness.py holds it to 1%). A
-        trained fitness is not fixed by its key across batches: the batch changes XLA's
-        reduction order, and training amplifies the rounding into another run (CPU: m* with
-        one key scored 78 alone and 209 in a batch of 12; at 10,000 PPO steps, 1 of 10 keys
-        gave m* the same value alone and in a batch). It is one draw of the body's fitness
-        distribution, which the batch did not shift as far as measured (those 10 keys: median
-        25.4 alone, 24.7 in the batch): compare trained fitness across batches by statistics
-        over keys. The same call (same batch and keys) repeated gives the same values on the
-        CPU (measured to the bit), and on a GPU under `em.deterministic_gpu()`
-        (docs/benchmarks.md).
+        then uses keys[i], whatever else is in the batch. Given controllers evaluated
+        (`init_params`, `train_steps=0`) score a body alike alone and in any batch, up to
+        rounding; a trained fitness also depends on the batch (XLA's reduction order, which
+        training amplifies), so compare trained fitness across batches by statistics over keys
+        (docs/guide/library.md, measured there). The same call repeated gives the same values
+        on the CPU, and on a GPU under `em.deterministic_gpu()`.
       cfg: which fitness and its budgets.
       init_params: (B, ...) controllers to start training from (a parent's, for inheritance);
         fresh ones if None.
