@@ -49,7 +49,7 @@ from evojax_morph import ppo
 from evojax_morph.fitnesses import get_fitness
 from evojax_morph.fitnesses import table as tables
 from evojax_morph.physics.determinism import full_precision
-from evojax_morph.run.cli import start_deterministic
+from evojax_morph.run.process import start_deterministic
 
 GPU_TRAIN_STEPS = 50_000  # `run`'s GPU budget per controller (`Space.gpu_defaults`)
 

@@ -28,11 +28,17 @@ import jax
 
 from evojax_morph import agents
 from evojax_morph.fitnesses import Inputs, get_fitness, list_fitnesses, resolve_physics
-from evojax_morph.physics.determinism import deterministic_gpu, full_precision, persistent_cache
-from evojax_morph.physics.engines import AUTO, list_engines, may_take, registered
+from evojax_morph.physics.determinism import full_precision, persistent_cache
+from evojax_morph.physics.engines import AUTO, list_engines, registered
 from evojax_morph.run import checkpoints, driver
 from evojax_morph.run.pipeline import RunConfig
-from evojax_morph.sharding import barrier, init_distributed
+from evojax_morph.run.process import (
+    Parser,
+    add_distributed_flags,
+    start_deterministic,
+    start_distributed,
+)
+from evojax_morph.sharding import barrier
 from evojax_morph.spaces import Space, get_space, list_spaces
 from evojax_morph.tasks import list_tasks, make_task
 
@@ -41,73 +47,6 @@ def gpu_defaults(space: str) -> dict:
     """The settings a run of `space` takes on a GPU (`Space.gpu_defaults`); an unknown space
     gets the common ones (`check` then says it is unknown)."""
     return (get_space(space) if space in list_spaces() else Space).gpu_defaults()
-
-
-def add_distributed_flags(parser) -> None:
-    """The flags of a run over several hosts, on `parser` (or an argument group)."""
-    add = parser.add_argument
-    add(
-        "--distributed",
-        action="store_true",
-        help="call jax.distributed.initialize() first: one process per host, all with the same "
-        "flags and --out; under SLURM nothing else is needed",
-    )
-    add("--coordinator", default=None,
-        help="with --distributed outside SLURM: host:port of process 0")
-    add("--num-processes", type=int, default=None,
-        help="with --distributed outside SLURM: number of processes")
-    add("--process-id", type=int, default=None,
-        help="with --distributed outside SLURM: this process's id")
-
-
-def start_deterministic(argv) -> None:
-    """XLA's deterministic GPU ops, before anything touches a JAX backend, unless --fast-gpu or
-    the fitness may step on an engine that no XLA flag makes reproducible
-    (`may_step_unreproducibly`)."""
-    pre = argparse.ArgumentParser(add_help=False)
-    pre.add_argument("--fast-gpu", action="store_true")
-    pre.add_argument("--physics", default=AUTO)
-    pre.add_argument("--fitness", default=RunConfig().fitness)
-    pre.add_argument("--resume", action="store_true")
-    pre.add_argument("--out", default=None)
-    known = pre.parse_known_args(argv)[0]
-    if not known.fast_gpu and not may_step_unreproducibly(known):
-        deterministic_gpu()
-
-
-def may_step_unreproducibly(known: argparse.Namespace) -> bool:
-    """Whether the run's fitness may step on an engine that a GPU runs unreproducibly whatever
-    XLA does (`Engine.unreproducible`: MuJoCo Warp orders contacts by thread timing): one the
-    fitness kind steps on (`Fitness.engines`), the --physics it is given where it takes the
-    run's choice, "auto" as `engines.may_take` says. A --resume reads both from the run's
-    config.json. There XLA's deterministic ops would only cost time (4.6% of a Bad Walker
-    fitness call at B = 1,024 on an H100, docs/benchmarks.md)."""
-    physics, fitness = known.physics, known.fitness
-    if known.resume and known.out:
-        try:
-            saved = json.loads((Path(known.out) / "config.json").read_text())
-            physics, fitness = saved["physics"], saved["fitness"]
-        except (OSError, ValueError, KeyError, TypeError):
-            pass  # the parser says what is wrong with --out
-    try:
-        bound = get_fitness(fitness).engines
-    except ValueError:
-        return False  # the parser says the fitness is unknown
-    steps_on = may_take(physics) if bound is None else [registered(e) for e in bound]
-    return any(engine.unreproducible for engine in steps_on)
-
-
-def start_distributed(argv) -> None:
-    """Must run before anything touches a JAX backend, so before the main parser's defaults."""
-    pre = Parser(prog="python -m evojax_morph.run", add_help=False)
-    add_distributed_flags(pre)
-    known, _ = pre.parse_known_args(argv)
-    if known.distributed:
-        try:
-            init_distributed(known.coordinator, known.num_processes, known.process_id)
-        except ValueError as e:  # no cluster found and no coordinator given
-            pre.error(f"--distributed: {e} (outside SLURM pass --coordinator, "
-                      "--num-processes and --process-id)")
 
 
 # What a --resume may change (the rest would not fit its checkpoint or would make another run):
@@ -199,14 +138,6 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
             f"{str(out)!r} already holds a run: pass --resume to continue it, or another --out"
         )
     return cfg, out, args.resume, not args.no_gif
-
-
-class Parser(argparse.ArgumentParser):
-    """An argparse parser whose errors are two lines on stderr and exit 2: the reason, and
-    where the flags are listed (argparse's own prints its whole usage block first)."""
-
-    def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message}\n{self.prog}: --help lists the flags\n")
 
 
 def make_parser(defaults: RunConfig) -> argparse.ArgumentParser:
