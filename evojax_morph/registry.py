@@ -3,11 +3,10 @@ known by name, registered, got back with an error that names the known ones, and
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
-_RAISE = object()
 
 
 class Registry(Generic[T]):
@@ -18,26 +17,24 @@ class Registry(Generic[T]):
       entries: the first entries.
       plural: its plural ("spaces" unless given).
       sort: `list` in sorted order (else in the order registered).
-      name: an entry's name (default: its `name` attribute).
+    Entries are known by their `name` attribute.
     """
 
     def __init__(self, what: str, entries: Iterable[T] = (), *, plural: str = "",
-                 sort: bool = False, name: Callable[[T], str] = lambda entry: entry.name):
-        self.what, self.plural, self.sort, self._name = what, plural or what + "s", sort, name
+                 sort: bool = False):
+        self.what, self.plural, self.sort = what, plural or what + "s", sort
         self._entries: dict[str, T] = {}
         self.register(*entries)
 
     def register(self, *entries: T) -> None:
         """Makes `entries` known by their names (a name registered again is replaced)."""
-        self._entries.update({self._name(e): e for e in entries})
+        self._entries.update({e.name: e for e in entries})
 
-    def get(self, name: str, default=_RAISE) -> T:
+    def get(self, name: str) -> T:
         """The entry registered as `name`; a ValueError naming the known ones where there is
-        none (or `default`, if given)."""
+        none."""
         if name in self._entries:
             return self._entries[name]
-        if default is not _RAISE:
-            return default
         raise ValueError(f"unknown {self.what} {name!r}; known {self.plural}: "
                          f"{', '.join(self.list())}")
 
@@ -48,10 +45,11 @@ class Registry(Generic[T]):
     def __contains__(self, name: str) -> bool:
         return name in self._entries
 
+    # As a dict, for pytest's monkeypatch.setitem (a test's engine in place of a registered one).
     def __getitem__(self, name: str) -> T:
         return self.get(name)
 
-    def __setitem__(self, name: str, entry: T) -> None:  # as a dict (pytest's monkeypatch)
+    def __setitem__(self, name: str, entry: T) -> None:
         self._entries[name] = entry
 
     def __delitem__(self, name: str) -> None:
