@@ -7,6 +7,7 @@ from collections.abc import Iterable
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
+_RAISE = object()
 
 
 class Registry(Generic[T]):
@@ -30,11 +31,13 @@ class Registry(Generic[T]):
         """Makes `entries` known by their names (a name registered again is replaced)."""
         self._entries.update({e.name: e for e in entries})
 
-    def get(self, name: str) -> T:
+    def get(self, name: str, default=_RAISE) -> T:
         """The entry registered as `name`; a ValueError naming the known ones where there is
-        none."""
+        none, or `default` if given (as a dict's, which pytest's monkeypatch.setitem calls)."""
         if name in self._entries:
             return self._entries[name]
+        if default is not _RAISE:
+            return default
         raise ValueError(f"unknown {self.what} {name!r}; known {self.plural}: "
                          f"{', '.join(self.list())}")
 
