@@ -1,8 +1,10 @@
 """evojax_morph: robot morphology design as a Markov Decision Process, on JAX and MJX."""
 
 import evojax_morph.physics.templates  # noqa: F401  (first: it imports mjx quietly)
+from evojax_morph.agents import AskTell, ask_tell, list_agents
 from evojax_morph.fitnesses import FitnessConfig, FitnessResult, list_fitnesses, standard_ppo
 from evojax_morph.fitnesses.batched import evaluate, init_params
+from evojax_morph.mdp import EvolutionEnv, make_env
 from evojax_morph.morphology import Morphology, format_tree, stack, unstack
 from evojax_morph.physics.determinism import (
     all_reduce_workaround,
@@ -34,7 +36,9 @@ cpu_scheduler_workaround()
 all_reduce_workaround()
 
 __all__ = [
+    "AskTell",
     "Confirmed",
+    "EvolutionEnv",
     "FitnessConfig",
     "FitnessResult",
     "Locomotion",
@@ -45,6 +49,7 @@ __all__ = [
     "Space",
     "TaskConfig",
     "all_reduce_workaround",
+    "ask_tell",
     "batch_mesh",
     "best_bodies",
     "confirm",
@@ -54,11 +59,13 @@ __all__ = [
     "format_tree",
     "init_distributed",
     "init_params",
+    "list_agents",
     "list_engines",
     "list_fitnesses",
     "list_spaces",
     "list_tasks",
     "load_controller",
+    "make_env",
     "make_space",
     "make_task",
     "make_train",

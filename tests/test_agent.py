@@ -290,3 +290,40 @@ def test_greedy_rollout_is_the_step_by_step_greedy_walk():
     assert len(set(names)) > 1  # the walk moves: the check compares more than m0
     np.testing.assert_allclose(got.fitness, [float(f) for _, f in want], rtol=1e-6)
     assert len(got.actions) == env.horizon and len(got.params) == env.horizon + 1
+
+
+@pytest.mark.parametrize("name", ["regularized_evolution", "ddqn"])
+def test_a_users_own_loop_of_ask_and_tell_is_the_agents_chunk(name):
+    """`em.ask_tell` stepped by hand, each child batch evaluated by `em.evaluate` outside any
+    jitted loop, against `make_agent`'s `chunk` of the same steps from the same key (its
+    fitness inside one scan): the same bodies, fitness, rewards and best body, bit for bit;
+    a learner's weights within float rounding (the scan fuses the step apart from the jitted
+    parts; bound as tests/test_study.py's). Double-DQN learns from its first step here."""
+    cfg, steps = em.FitnessConfig(kind="table"), 5
+    env = em.make_env("bad_walker", cfg, num_envs=4)
+    settings = dict(learning_starts=4, epsilon_steps=8, hidden=16) if name == "ddqn" else {}
+    key = jax.random.PRNGKey(7)
+    whole = agents.make_agent(name, env, **settings)
+    want, want_metrics = whole.chunk(whole.init(key), steps)
+
+    agent = em.ask_tell(name, env, **settings)
+    first = agent.ask_first(key)
+    state = agent.tell_first(first, em.evaluate(env.space, first.morphs, first.keys, cfg,
+                                                first.params))
+    got_metrics = []
+    for _ in range(steps):
+        children = agent.ask(state)
+        out = em.evaluate(env.space, children.morphs, children.keys, cfg, children.params)
+        state, metrics = agent.tell(state, children, out)
+        got_metrics.append(metrics)
+    got_metrics = jax.tree.map(lambda *xs: np.stack(xs), *got_metrics)
+    exact = lambda st: (st.evo, st.first, st.step, st.best_fitness, st.best_morph)  # noqa: E731
+    for a, b in zip(jax.tree.leaves(exact(want)), jax.tree.leaves(exact(state))):
+        np.testing.assert_array_equal(a, b)
+    for field in ("reward", "fitness", "best_fitness", "bodies"):
+        for a, b in zip(jax.tree.leaves(want_metrics[field]), jax.tree.leaves(got_metrics[field])):
+            np.testing.assert_array_equal(a, b, err_msg=field)
+    for a, b in zip(jax.tree.leaves(want.learner), jax.tree.leaves(state.learner)):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
+    children = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), got_metrics["bodies"]["morph"])
+    assert len({env.space.canonical(m) for m in em.unstack(children)}) > 2  # it searched

@@ -5,7 +5,8 @@ chunk(state, n) runs n environment steps (each evaluates env.num_envs children) 
 scan and stacks per-step metrics ("reward" and "fitness" of shape (n, N), "best_fitness" (n,),
 "bodies": the children evaluated and their parents, for the body log; and the agent's own,
 e.g. "epsilon", "entropy", "loss"); scores(learner, obs) -> (N, A) scores whose masked argmax
-is the greedy action, or None for the baselines, which learn nothing.
+is the greedy action, or None for the baselines, which learn nothing. `ask_tell(name, env)`
+gives the same agent with the caller evaluating its children (`AskTell`).
 
 To add an agent: a module of this package with its config dataclass (defaults, and `for_run`:
 what a run's `RunOptions` make of it) and `make_policy(env, cfg) -> Policy` (how it acts and
@@ -18,8 +19,21 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
+import jax
+
 from evojax_morph.agents import a2c, baselines, dqn, predictor, qrdqn
-from evojax_morph.agents.base import Agent, AgentState, Policy, RunOptions, Transition, from_policy
+from evojax_morph.agents.base import (
+    Agent,
+    AgentState,
+    AskTell,
+    Policy,
+    Proposal,
+    RunOptions,
+    Start,
+    Transition,
+    from_policy,
+    make_ask_tell,
+)
 from evojax_morph.mdp import EvolutionEnv
 from evojax_morph.registry import Registry
 
@@ -96,12 +110,24 @@ def make_agent(name: str, env: EvolutionEnv, cfg: Any = None, mesh=None, **overr
     return from_policy(env, make_policy(name, env, cfg, **overrides), mesh)
 
 
+def ask_tell(name: str, env: EvolutionEnv, cfg: Any = None, **overrides) -> AskTell:
+    """Agent `name` on `env` with the caller evaluating its children, each part jitted
+    (`AskTell`); `cfg` and `overrides` as in `make_policy`. Its steps are `make_agent`'s:
+    asked, evaluated by `env.fitness_fn` and told, they give what `chunk` gives."""
+    parts = make_ask_tell(env, make_policy(name, env, cfg, **overrides))
+    return AskTell(*(jax.jit(f) for f in parts))
+
+
 __all__ = [
     "Agent",
     "AgentState",
+    "AskTell",
     "Policy",
+    "Proposal",
     "RunOptions",
+    "Start",
     "Transition",
+    "ask_tell",
     "config_for_run",
     "get_agent",
     "settings_problem",

@@ -2,9 +2,10 @@
 
 An agent states only how it acts and how it learns (a `Policy`); `from_policy` wraps that in the
 loop observe -> act -> mutate -> evaluate (one fitness call) -> track the best body -> restart
-ended episodes -> learn, run `num_steps` times in one jitted `lax.scan` per chunk. `make_steps`
-gives the loop's step split around its fitness call, for a study that evaluates several agents'
-children in one call (`evojax_morph.run.study`).
+ended episodes -> learn, run `num_steps` times in one jitted `lax.scan` per chunk.
+`make_ask_tell` gives the same step split around its fitness call, the caller evaluating
+(evosax's ask/tell): a user's own loop, and a study that evaluates several agents' children
+in one call (`evojax_morph.run.study`), step an agent through it.
 """
 
 from __future__ import annotations
@@ -107,8 +108,8 @@ class Agent(NamedTuple):
 
 
 class Proposal(NamedTuple):
-    """What a step's first half (`Steps.propose`) leaves for its second (`Steps.absorb`): the
-    children to evaluate, as the fitness call's arguments, and what acting chose."""
+    """What `AskTell.ask` returns and `AskTell.tell` takes back: the children to evaluate, as
+    the fitness call's arguments (`keys`, `morphs`, `params`), and what acting chose."""
 
     keys: jax.Array  # (N,) the fitness call's keys
     morphs: Morphology  # (N, ...) the children
@@ -122,8 +123,9 @@ class Proposal(NamedTuple):
 
 
 class Start(NamedTuple):
-    """What `Steps.start` leaves for `Steps.started`: m0's evaluation, as the fitness call's
-    arguments, and the keys left."""
+    """What `AskTell.ask_first` returns and `AskTell.tell_first` takes back: m0's
+    evaluation, as the fitness call's arguments (`keys`, `morphs`, `params`), and the keys
+    left."""
 
     keys: jax.Array  # (N,) the fitness call's keys
     morphs: Morphology  # (N, ...) m0, N times
@@ -132,43 +134,52 @@ class Start(NamedTuple):
     key: jax.Array  # the agent's key for its first step
 
 
-class Steps(NamedTuple):
-    """The pure, unjitted parts of an agent's loop (`make_steps`); `from_policy` jits them.
+class AskTell(NamedTuple):
+    """An agent's loop with the caller evaluating (`make_ask_tell`; jitted: `agents.ask_tell`).
 
-    Each part that evaluates bodies is split around its one fitness call: start(key) -> `Start`
-    and started(start, out) -> AgentState make init(key); propose(state) -> `Proposal` (act
-    and mutate) and absorb(state, proposal, out) -> (state, metrics) (reward, track the best,
-    `next_evo`, learn) make a step. `out` is the `FitnessResult` of `env.fitness_fn(keys,
-    morphs, params)` of the start or proposal; a study (`evojax_morph.run.study`) evaluates
-    several agents' in one fitness call.
+    `out` below is the `FitnessResult` of `fitness(keys, morphs, params)` of what was asked,
+    by any function that evaluates as `env.fitness_fn` does (`em.evaluate(space, morphs,
+    keys, cfg, params)` outside a jitted loop). The agent's key lives in its state, so `ask`
+    takes none: the same state asks for the same children.
+
+    Attributes:
+      init: init(key) -> `AgentState`: ask_first and tell_first with the env's own fitness.
+      ask_first: ask_first(key) -> `Start`: m0, N times with fresh controllers, to evaluate.
+      tell_first: tell_first(start, out) -> `AgentState`: the agent started on m0's
+        evaluation.
+      ask: ask(state) -> `Proposal`: act and mutate; the N children to evaluate.
+      tell: tell(state, proposal, out) -> (state, metrics): the children's rewards, the best
+        body tracked, ended episodes restarted, the agent learned; metrics "reward",
+        "fitness", "best_fitness", "bodies" and the agent's own, as `Agent.chunk`'s for one
+        step.
     """
 
     init: Callable
-    start: Callable
-    started: Callable
-    propose: Callable
-    absorb: Callable
+    ask_first: Callable
+    tell_first: Callable
+    ask: Callable
+    tell: Callable
 
 
-def make_steps(env: EvolutionEnv, policy: Policy) -> Steps:
-    """The step of `policy` on `env`, split around its one fitness call (`Steps`)."""
+def make_ask_tell(env: EvolutionEnv, policy: Policy) -> AskTell:
+    """The loop of `policy` on `env`, split around its fitness calls (`AskTell`)."""
     n_init, n_act, n_learn, n_next = (*policy.keys, 0)[:4]
 
-    def start(key: jax.Array) -> Start:
+    def ask_first(key: jax.Array) -> Start:
         keys = jax.random.split(key, n_init + 2)
         return Start(*env.first_bodies(keys[n_init]), keys[:n_init], keys[n_init + 1])
 
-    def started(first: Start, out) -> AgentState:
+    def tell_first(first: Start, out) -> AgentState:
         obs, evo = env.first_evaluated(first.morphs, out)
         learner = policy.init(first.key_init, obs)
         return AgentState(learner, evo, evo, first.key, jnp.zeros((), jnp.int32),
                           *track_best(evo))
 
     def init(key: jax.Array) -> AgentState:
-        first = start(key)
-        return started(first, env.fitness_fn(first.keys, first.morphs, first.params))
+        first = ask_first(key)
+        return tell_first(first, env.fitness_fn(first.keys, first.morphs, first.params))
 
-    def propose(state: AgentState) -> Proposal:
+    def ask(state: AgentState) -> Proposal:
         keys = jax.random.split(state.key, n_act + n_learn + n_next + 2)
         key_act, key_env = keys[1 : 1 + n_act], keys[1 + n_act]
         key_learn, key_next = jnp.split(keys[2 + n_act :], [n_learn])
@@ -182,7 +193,7 @@ def make_steps(env: EvolutionEnv, policy: Policy) -> Steps:
         return Proposal(fit_keys, morphs, params, obs, action, key_learn, key_next, keys[0],
                         act_metrics)
 
-    def absorb(state: AgentState, prop: Proposal, out):
+    def tell(state: AgentState, prop: Proposal, out):
         # THE CHILDREN EVALUATED
         next_obs, children, reward, terminated, truncated, _ = env.evaluated(
             state.evo, prop.action, prop.morphs, out)
@@ -199,17 +210,17 @@ def make_steps(env: EvolutionEnv, policy: Policy) -> Steps:
         metrics["bodies"] = bodies(state.evo, children)
         return new, {**metrics, **prop.act_metrics, **learn_metrics}
 
-    return Steps(init, start, started, propose, absorb)
+    return AskTell(init, ask_first, tell_first, ask, tell)
 
 
 def from_policy(env: EvolutionEnv, policy: Policy, mesh=None) -> Agent:
     """The jitted agent of `policy` on `env`, its state replicated on `mesh` (default: every
     device; the fitness inside splits its batch across them)."""
-    steps = make_steps(env, policy)
+    steps = make_ask_tell(env, policy)
 
     def env_step(state: AgentState, _):
-        prop = steps.propose(state)
-        return steps.absorb(state, prop, env.fitness_fn(prop.keys, prop.morphs, prop.params))
+        prop = steps.ask(state)
+        return steps.tell(state, prop, env.fitness_fn(prop.keys, prop.morphs, prop.params))
 
     def chunk(state: AgentState, num_steps: int):
         """`num_steps` env steps in one `lax.scan`; metrics stacked along a leading axis."""

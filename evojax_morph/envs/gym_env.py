@@ -14,8 +14,7 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
 from evojax_morph.fitnesses import FitnessConfig
-from evojax_morph.fitnesses.batched import make_fitness_fn
-from evojax_morph.mdp import EvolutionEnv, Observation
+from evojax_morph.mdp import Observation, make_env
 from evojax_morph.spaces import Space, make_space
 
 
@@ -54,9 +53,7 @@ class GymEvolutionEnv(gym.vector.VectorEnv):
     ):
         self.space = make_space(space) if isinstance(space, str) else space
         self.fitness = FitnessConfig(kind=fitness) if isinstance(fitness, str) else fitness
-        init_fn, fitness_fn = make_fitness_fn(self.space, self.fitness, mesh)
-        horizon = horizon or self.space.default_horizon
-        self.env = EvolutionEnv(self.space, fitness_fn, init_fn, horizon, num_envs)
+        self.env = make_env(self.space, self.fitness, num_envs, horizon, mesh)
         self.num_envs = num_envs
         self.render_mode = None
 

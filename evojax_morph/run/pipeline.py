@@ -19,7 +19,7 @@ from evojax_morph import agents
 from evojax_morph.agents import Agent, RunOptions
 from evojax_morph.fitnesses import FitnessConfig, Inputs, get_fitness, standard_ppo
 from evojax_morph.fitnesses.batched import make_fitness_fn
-from evojax_morph.mdp import EvolutionEnv, masked_argmax
+from evojax_morph.mdp import EvolutionEnv, make_env, masked_argmax
 from evojax_morph.sharding import batch_mesh, to_host
 from evojax_morph.spaces import Space, make_space
 from evojax_morph.tasks import make_task
@@ -93,16 +93,14 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
                             ppo=standard_ppo(cfg.train_steps, cfg.controllers),
                             classifier=cfg.classifier, physics=cfg.physics, table=cfg.table,
                             classes=cfg.classes)
-    init_fn, fitness_fn = make_fitness_fn(space, fit_cfg, mesh)
-    horizon = cfg.horizon or space.default_horizon
-    env = EvolutionEnv(space, fitness_fn, init_fn, horizon=horizon, num_envs=cfg.num_envs)
+    env = make_env(space, fit_cfg, cfg.num_envs, cfg.horizon, mesh)
     agent_cfg = agent_config(cfg, env) if agent_cfg is None else agent_cfg
     agent = agents.make_agent(cfg.agent, env, agent_cfg, mesh)
     # One body a call: the greedy rollout runs on one device of this process, a program with
     # no cross-device communication (split over 2 GPUs with Warp it hung, docs/benchmarks.md).
     one = make_fitness_fn(space, fit_cfg, batch_mesh(jax.local_devices()[:1]))[1]
     greedy_env = dataclasses.replace(env, num_envs=1, fitness_fn=one)
-    return Pipeline(space, fit_cfg, init_fn, fitness_fn, env, agent, greedy_env)
+    return Pipeline(space, fit_cfg, env.init_fn, env.fitness_fn, env, agent, greedy_env)
 
 
 class Greedy(NamedTuple):

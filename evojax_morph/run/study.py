@@ -1,8 +1,8 @@
 """A study as one batched program: every method and every seed of a comparison stepping together.
 
-A step of the study proposes each method's children (its agent's `Steps.propose`, vmapped over
+A step of the study proposes each method's children (its agent's `AskTell.ask`, vmapped over
 its seeds), evaluates every method's and seed's children in ONE call of the fitness on one flat
-batch of sum_m S x N_m bodies, and gives each method its results back (`Steps.absorb`, vmapped
+batch of sum_m S x N_m bodies, and gives each method its results back (`AskTell.tell`, vmapped
 over its seeds). The start (m0's evaluation) is one call in the same way. Nothing but the batch
 is shared: a method's seeds run exactly as `from_policy`'s agent runs them alone with the same
 keys (tests/test_study.py, on the table fitness, bit for bit), and the methods see nothing of
@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from evojax_morph import agents
-from evojax_morph.agents.base import Policy, make_steps
+from evojax_morph.agents.base import Policy, make_ask_tell
 from evojax_morph.mdp import EvolutionEnv, EvoState
 from evojax_morph.morphology import signature
 from evojax_morph.run.checkpoints import write_atomic
@@ -108,24 +108,24 @@ def make_study(methods: Sequence[Method], seeds: int, fitness_fn: Callable | Non
     if len(set(names)) != len(names):
         raise ValueError(f"a study's methods need distinct names, got {names}")
     fitness_fn = fitness_fn or methods[0].env.fitness_fn
-    steps = [make_steps(m.env, m.policy) for m in methods]
+    steps = [make_ask_tell(m.env, m.policy) for m in methods]
     args = lambda b: (b.keys, b.morphs, b.params)  # noqa: E731
 
     def init(keys: jax.Array) -> dict:
-        starts = [jax.vmap(s.start)(keys) for s in steps]
+        starts = [jax.vmap(s.ask_first)(keys) for s in steps]
         outs = evaluate_together(fitness_fn, [args(b) for b in starts])
-        return {m.name: jax.vmap(s.started)(b, out)
+        return {m.name: jax.vmap(s.tell_first)(b, out)
                 for m, s, b, out in zip(methods, steps, starts, outs)}
 
     def step(states: dict, _):
-        # PROPOSE: every method's seeds act and mutate
-        props = [jax.vmap(s.propose)(states[m.name]) for m, s in zip(methods, steps)]
+        # ASK: every method's seeds act and mutate
+        props = [jax.vmap(s.ask)(states[m.name]) for m, s in zip(methods, steps)]
         # EVALUATE every child of the study in one fitness call
         outs = evaluate_together(fitness_fn, [args(p) for p in props])
-        # ABSORB: each method's seeds learn from their own children
+        # TELL: each method's seeds learn from their own children
         new, metrics = {}, {}
         for m, s, p, out in zip(methods, steps, props, outs):
-            new[m.name], mm = jax.vmap(s.absorb)(states[m.name], p, out)
+            new[m.name], mm = jax.vmap(s.tell)(states[m.name], p, out)
             mm = {k: v for k, v in mm.items() if k != "bodies"}
             mm["signature"] = _signatures(p.morphs)
             mm["morph"] = p.morphs
