@@ -2,7 +2,13 @@
 that kind's own module and its registry (the run asks the kind instead, issue 64)."""
 
 import ast
+import csv
+import dataclasses
+import json
 from pathlib import Path
+
+import jax.numpy as jnp
+import pytest
 
 import evojax_morph as em
 from evojax_morph import agents
@@ -75,3 +81,65 @@ def test_every_sort_of_kind_has_one_registry():
     mine = Registry("thing", sort=True)
     mine.register(tasks.TaskConfig(name="b"), tasks.TaskConfig(name="a"))
     assert mine.list() == ["a", "b"] and mine.get("b").name == "b" and "a" in mine
+
+
+@dataclasses.dataclass(frozen=True)
+class NthConfig:
+    nth: int = 0  # which valid mutation, counted from the first
+    loud: bool = False  # a second setting, of another type
+
+
+def make_nth(env, cfg: NthConfig):
+    """A toy agent: always the `nth` valid mutation (modulo how many are valid)."""
+
+    def act(learner, keys, obs, step):
+        rank = jnp.cumsum(obs.mask, axis=1) - 1
+        wanted = cfg.nth % obs.mask.sum(axis=1, keepdims=True)
+        action = jnp.argmax(obs.mask & (rank == wanted), axis=1).astype(jnp.int32)
+        return action, {"nth": jnp.full((), cfg.nth + 100 * cfg.loud, jnp.float32)}
+
+    return agents.Policy(keys=(0, 1, 0), init=lambda keys, obs: None, act=act,
+                         learn=lambda learner, keys, transition, step: (learner, {}),
+                         scores=None)
+
+
+def test_a_new_agent_with_a_setting_runs_from_the_command_line(tmp_path, monkeypatch, capsys):
+    """An agent registered with a settings dataclass and nothing else gets `--agent.FIELD`
+    flags (typed, with its comment as help), its run records the setting in config.json and
+    acts on it; a bad value, a setting of another agent and a --resume that would change it
+    exit 2; a shared setting given as `--agent.population` resolves the tournament from it."""
+    from evojax_morph.run import cli
+    from evojax_morph.run.pipeline import RunConfig, agent_config, build
+
+    monkeypatch.setitem(agents._REGISTRY, "nth", agents.AgentKind("nth", NthConfig, make_nth))
+    with pytest.raises(SystemExit):
+        cli.main(["--agent", "nth", "--help"])
+    assert "--agent.nth INT which valid mutation, counted from the first (its default 0)" in (
+        " ".join(capsys.readouterr().out.split()))
+    tiny = ["--space", "bad_walker", "--fitness", "table", "--num-envs", "2", "--steps", "2",
+            "--chunk", "2", "--confirm", "0", "--no-gif", "--agent", "nth"]
+    out = tmp_path / "run"
+    assert cli.main(tiny + ["--agent.nth", "3", "--agent.loud", "true", "--out", str(out)]) == 0
+    assert json.loads((out / "config.json").read_text())["agent_params"] == {"nth": 3,
+                                                                              "loud": True}
+    rows = list(csv.DictReader((out / "metrics.csv").open()))
+    assert [float(r["nth"]) for r in rows] == [103.0, 103.0]
+    for bad, why in ((["--agent.loud", "maybe"], "true or false, not 'maybe'"),
+                     (["--agent.reach", "2"], "unrecognized arguments: --agent.reach 2")):
+        with pytest.raises(SystemExit) as e:
+            cli.main(tiny + bad + ["--out", str(tmp_path / "bad")])
+        assert e.value.code == 2 and why in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        cli.main(tiny + ["--agent.nth", "4", "--out", str(out), "--resume"])
+    assert e.value.code == 2
+    assert "--agent.* {'nth': 4} would make another run" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--agent", "predictor", "--agent.reach", "0", "--fitness", "table",
+                  "--out", str(tmp_path / "bad")])
+    assert e.value.code == 2 and "a reach of at least 1" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
+
+    p = build(RunConfig(fitness="table", agent="random", num_envs=4))
+    got = agent_config(RunConfig(fitness="table", agent="regularized_evolution", num_envs=4,
+                                 agent_params={"population": 64}), p.env)
+    assert (got.population, got.tournament) == (64, 8)

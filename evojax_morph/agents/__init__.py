@@ -72,23 +72,31 @@ def get_agent(name: str) -> AgentKind:
     return _REGISTRY.get(name)
 
 
-def settings_problem(name: str, num_envs: int, population: int = 0,
-                     tournament: int = 0) -> str | None:
-    """Why agent `name` cannot run `num_envs` evolutions with these settings (None: it can),
-    checked before anything compiles."""
-    check = get_agent(name).check
+def settings_problem(name: str, num_envs: int, population: int = 0, tournament: int = 0,
+                     params: dict | None = None) -> str | None:
+    """Why agent `name` cannot run `num_envs` evolutions with these settings and its own
+    `params` (fields of its config; None: it can), checked before anything compiles."""
+    kind, params = get_agent(name), params or {}
     try:
-        if check is not None:
-            check(num_envs, population, tournament)
+        if kind.check is not None:
+            kind.check(num_envs, params.get("population", population),
+                       params.get("tournament", tournament))
+        if params and kind.config is None:
+            raise ValueError(f"the {name} agent has no settings")
+        if params and hasattr(kind.config, "check"):
+            dataclasses.replace(kind.config(), **params).check(num_envs)
     except ValueError as e:
         return str(e)
     return None
 
 
 def config_for_run(name: str, env: EvolutionEnv, run: RunOptions) -> Any:
-    """The config of agent `name` that a run's settings give it (None for the baselines)."""
+    """The config of agent `name` that a run's settings give it (None for the baselines
+    without settings; a config without `for_run` takes none of them)."""
     config = get_agent(name).config
-    return None if config is None else config.for_run(env, run)
+    if config is None:
+        return None
+    return config.for_run(env, run) if hasattr(config, "for_run") else config()
 
 
 def make_policy(name: str, env: EvolutionEnv, cfg: Any = None, **overrides) -> Policy:

@@ -20,7 +20,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import inspect
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -67,7 +69,8 @@ def resumed(parser, cfg: RunConfig, args, given: set[str]) -> RunConfig:
     said in one line; exit 2 where a flag given would change another setting."""
     new = {f.name: getattr(args, f.name) for f in dataclasses.fields(RunConfig)
            if f.name in given and getattr(args, f.name) != getattr(cfg, f.name)}
-    flag = lambda name: "--" + name.replace("_", "-")  # noqa: E731
+    flag = lambda name: "--agent.*" if name == "agent_params" else (  # noqa: E731
+        "--" + name.replace("_", "-"))
     fixed = [name for name in new if name not in RESUME_MAY_CHANGE]
     if fixed:
         name = fixed[0]
@@ -86,11 +89,16 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
     gpu = jax.default_backend() == "gpu"
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--space", default=RunConfig().space)
-    space = pre.parse_known_args(argv)[0].space
-    defaults = dataclasses.replace(RunConfig(), **gpu_defaults(space)) if gpu else RunConfig()
-    parser = make_parser(defaults)
+    pre.add_argument("--agent", default=RunConfig().agent)
+    known = pre.parse_known_args(argv)[0]
+    defaults = RunConfig(**gpu_defaults(known.space)) if gpu else RunConfig()
+    parser = make_parser(defaults, known.agent)
     args = parser.parse_args(argv)
-    given = given_flags(make_parser(defaults), argv)
+    given = given_flags(make_parser(defaults, known.agent), argv)
+    args.agent_params = {k.removeprefix("agent."): v for k, v in vars(args).items()
+                         if k.startswith("agent.")}
+    if args.agent_params:
+        given.add("agent_params")
     check(parser, args)
     if not args.resume:
         args.physics = physics(parser, args.physics, args.fitness)
@@ -140,9 +148,9 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
     return cfg, out, args.resume, not args.no_gif
 
 
-def make_parser(defaults: RunConfig) -> argparse.ArgumentParser:
+def make_parser(defaults: RunConfig, agent: str = "") -> argparse.ArgumentParser:
     """The run's flags in groups, their defaults `defaults`' (a RunConfig, GPU defaults
-    applied)."""
+    applied), with `--agent.FIELD` for each of `agent`'s settings (`add_agent_settings`)."""
     parser = Parser(
         prog="python -m evojax_morph.run",
         description=__doc__,
@@ -151,6 +159,10 @@ def make_parser(defaults: RunConfig) -> argparse.ArgumentParser:
     add_run_flags(parser.add_argument_group("run"), defaults)
     add_fitness_flags(parser.add_argument_group("fitness"), defaults)
     add_agent_flags(parser.add_argument_group("agent"), defaults)
+    if agent in agents.list_agents() and agents.get_agent(agent).config is not None:
+        add_agent_settings(parser.add_argument_group(
+            f"{agent}'s own settings (--agent.FIELD: any field of its config, over what the "
+            "flags above make of it)"), agents.get_agent(agent).config)
     add_confirm_flags(parser.add_argument_group("confirm"), defaults)
     output = parser.add_argument_group("output and devices")
     output.add_argument(
@@ -278,6 +290,29 @@ def add_agent_flags(group, defaults: RunConfig) -> None:
         "(0: an eighth of the population)")
 
 
+def add_agent_settings(group, config: type) -> None:
+    """`--agent.FIELD VALUE` for each field of an agent's settings dataclass `config`, typed
+    by its default (a bool as true or false), its help the field's comment; the ones given
+    land in `agent_params`."""
+    notes = dict(re.findall(r"^\s+(\w+): [^=\n]+=[^#\n]*#\s*(.*)$", inspect.getsource(config),
+                            re.MULTILINE))
+    for f in dataclasses.fields(config):
+        kind = type(f.default)
+        if kind not in (bool, int, float, str):
+            continue
+        group.add_argument(
+            f"--agent.{f.name}", dest=f"agent.{f.name}", default=argparse.SUPPRESS,
+            type=boolean if kind is bool else kind, metavar=kind.__name__.upper(),
+            help=f"{notes.get(f.name, '')} (its default {f.default!r})".replace("%", "%%"))
+
+
+def boolean(text: str) -> bool:
+    """true or false (any case), as a flag's value."""
+    if text.lower() not in ("true", "false"):
+        raise argparse.ArgumentTypeError(f"true or false, not {text!r}")
+    return text.lower() == "true"
+
+
 def add_confirm_flags(group, defaults: RunConfig) -> None:
     """The confirm stage at the end of a run."""
     add = group.add_argument
@@ -329,7 +364,8 @@ def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
             parser.error(f"--{name.replace('_', '-')} must be positive, got {value}")
     if args.horizon < 0:
         parser.error("--horizon must be >= 0")
-    problem = agents.settings_problem(args.agent, args.num_envs, args.population, args.tournament)
+    problem = agents.settings_problem(args.agent, args.num_envs, args.population, args.tournament,
+                                      args.agent_params)
     if problem:
         parser.error(problem)
     if args.confirm < 0:

@@ -52,11 +52,16 @@ class RunConfig:
     checkpoint_every: int = 1  # chunks between checkpoints
     confirm: int = 4  # bodies of the highest mean evaluated again at the end; 0: none
     confirm_controllers: int = 4  # fresh evaluations per confirmed body (and greedy body with them)
+    agent_params: dict = dataclasses.field(default_factory=dict)  # fields of the agent's config
+    # set over what the flags above make of it (`--agent.FIELD`)
 
 
 def agent_config(cfg: RunConfig, env: EvolutionEnv) -> Any:
     """The config of the run's agent that its settings give it (None for an agent without
-    settings), its defaults resolved (`agents.config_for_run`)."""
+    settings), its defaults resolved (`agents.config_for_run`), then `cfg.agent_params` set
+    over it (one named as a `RunOptions` field goes in before the defaults are resolved, so
+    that `population` alone resolves the tournament from it)."""
+    params = cfg.agent_params
     run = RunOptions(
         hidden=cfg.hidden,
         reward_scale=1.0 / get_fitness(cfg.fitness).scale(env.space),
@@ -64,8 +69,9 @@ def agent_config(cfg: RunConfig, env: EvolutionEnv) -> Any:
         learning_starts=cfg.learning_starts,
         population=cfg.population,
         tournament=cfg.tournament,
-    )
-    return agents.config_for_run(cfg.agent, env, run)
+    )._replace(**{k: v for k, v in params.items() if k in RunOptions._fields})
+    config = agents.config_for_run(cfg.agent, env, run)
+    return dataclasses.replace(config, **params) if params else config
 
 
 class Pipeline(NamedTuple):
