@@ -154,6 +154,40 @@ def q_network(space, cfg: DQNConfig, outputs: int = 1):
     return init, apply
 
 
+def empty_buffer(cfg: DQNConfig, obs: Observation) -> Buffer:
+    """A replay buffer of `cfg.buffer_size` transitions shaped as one of `obs`'s rows."""
+    cap = cfg.buffer_size
+    empty = lambda x: jnp.zeros((cap,) + x.shape[1:], x.dtype)  # noqa: E731
+    return Buffer(
+        obs=jax.tree.map(empty, obs),
+        action=jnp.zeros(cap, jnp.int32),
+        reward=jnp.zeros(cap),
+        next_obs=jax.tree.map(empty, obs),
+        terminal=jnp.zeros(cap, bool),
+        heads=jnp.zeros((cap, cfg.heads), bool),
+        pos=jnp.zeros((), jnp.int32),
+        size=jnp.zeros((), jnp.int32),
+    )
+
+
+def store(cfg: DQNConfig, buf: Buffer, tr: Transition, trains: jax.Array) -> Buffer:
+    """`buf` with the N transitions of `tr` (their rewards scaled, the heads each trains)
+    written over its oldest (a ring)."""
+    n = tr.action.shape[0]
+    idx = (buf.pos + jnp.arange(n)) % cfg.buffer_size
+    put = lambda old, x: old.at[idx].set(x)  # noqa: E731
+    return Buffer(
+        obs=jax.tree.map(put, buf.obs, tr.obs),
+        action=buf.action.at[idx].set(tr.action),
+        reward=buf.reward.at[idx].set(tr.reward * cfg.reward_scale),
+        next_obs=jax.tree.map(put, buf.next_obs, tr.next_obs),
+        terminal=buf.terminal.at[idx].set(tr.terminated),
+        heads=buf.heads.at[idx].set(trains),
+        pos=(buf.pos + n) % cfg.buffer_size,
+        size=jnp.minimum(buf.size + n, cfg.buffer_size),
+    )
+
+
 def replay_policy(env: EvolutionEnv, cfg: DQNConfig, init_net, values_fn, loss_fn) -> Policy:
     """Acting and learning of a Q-learning agent with a target network and a replay buffer.
 
@@ -174,21 +208,9 @@ def replay_policy(env: EvolutionEnv, cfg: DQNConfig, init_net, values_fn, loss_f
 
     def init(keys: jax.Array, obs: Observation) -> DQNLearner:
         params = init_net(keys[0], obs)
-        cap = cfg.buffer_size
-        empty = lambda x: jnp.zeros((cap,) + x.shape[1:], x.dtype)  # noqa: E731
-        buffer = Buffer(
-            obs=jax.tree.map(empty, obs),
-            action=jnp.zeros(cap, jnp.int32),
-            reward=jnp.zeros(cap),
-            next_obs=jax.tree.map(empty, obs),
-            terminal=jnp.zeros(cap, bool),
-            heads=jnp.zeros((cap, cfg.heads), bool),
-            pos=jnp.zeros((), jnp.int32),
-            size=jnp.zeros((), jnp.int32),
-        )
         head = jax.random.randint(jax.random.fold_in(keys[0], 1), (obs.mask.shape[0],), 0,
                                   cfg.heads)
-        return DQNLearner(params, params, optimizer.init(params), buffer, head)
+        return DQNLearner(params, params, optimizer.init(params), empty_buffer(cfg, obs), head)
 
     def act(learner: DQNLearner, keys: jax.Array, obs: Observation, step):
         """Epsilon-greedy over valid actions only, greedy on each evolution's head."""
@@ -210,20 +232,7 @@ def replay_policy(env: EvolutionEnv, cfg: DQNConfig, init_net, values_fn, loss_f
             trains = jax.random.bernoulli(key_boot, cfg.bootstrap, (len(head), cfg.heads))
         else:
             trains = jnp.ones((len(head), 1), bool)
-        # STORE
-        buf, n = learner.buffer, tr.action.shape[0]
-        idx = (buf.pos + jnp.arange(n)) % cfg.buffer_size
-        put = lambda store, x: store.at[idx].set(x)  # noqa: E731
-        buf = Buffer(
-            obs=jax.tree.map(put, buf.obs, tr.obs),
-            action=buf.action.at[idx].set(tr.action),
-            reward=buf.reward.at[idx].set(tr.reward * cfg.reward_scale),
-            next_obs=jax.tree.map(put, buf.next_obs, tr.next_obs),
-            terminal=buf.terminal.at[idx].set(tr.terminated),
-            heads=buf.heads.at[idx].set(trains),
-            pos=(buf.pos + n) % cfg.buffer_size,
-            size=jnp.minimum(buf.size + n, cfg.buffer_size),
-        )
+        buf = store(cfg, learner.buffer, tr, trains)  # STORE
 
         # UPDATE: updates_per_step minibatches, once enough transitions are stored
         def update(carry, key):

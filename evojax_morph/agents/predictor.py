@@ -208,6 +208,119 @@ def load_ensemble(path: str, template: dict, part: str) -> dict:
     return jax.tree_util.tree_map_with_path(take, template)
 
 
+def normaliser(cfg: PredictorConfig, data: Data):
+    """(mean, scale) of the fitness stored: the ensemble learns (fitness - mean) / scale."""
+    filled = jnp.arange(cfg.buffer_size) < data.size
+    count = jnp.maximum(data.size, 1)
+    mean = jnp.sum(jnp.where(filled, data.fitness, 0.0)) / count
+    var = jnp.sum(jnp.where(filled, (data.fitness - mean) ** 2, 0.0)) / count
+    return mean, jnp.sqrt(var) + 1e-6
+
+
+def store(cfg: PredictorConfig, data: Data, children: EvoState) -> Data:
+    """`data` with the N children's evaluations written over its oldest (a ring)."""
+    n = children.fitness.shape[0]
+    idx = (data.pos + jnp.arange(n)) % cfg.buffer_size
+    return Data(jax.tree.map(lambda s, x: s.at[idx].set(x), data.morph, children.morph),
+                data.fitness.at[idx].set(children.fitness),
+                data.signature.at[idx].set(jax.vmap(signature)(children.morph)),
+                (data.pos + n) % cfg.buffer_size, jnp.minimum(data.size + n, cfg.buffer_size))
+
+
+def train(cfg: PredictorConfig, predict, optimizer, learner: PredictorLearner, data: Data, key):
+    """(params, opt_state, mean loss): `cfg.updates_per_step` Adam steps of every member on a
+    minibatch of its own from `data` (a bootstrap), none before `data` holds enough."""
+    mean, scale = normaliser(cfg, data)
+
+    def loss_fn(params, prior, idx):
+        target = (data.fitness[idx] - mean) / scale
+        morphs = jax.tree.map(lambda x: x[idx], data.morph)
+        one = lambda p: jax.tree.map(lambda x: x[None], p)  # noqa: E731
+        return jnp.mean((predict(one(params), one(prior), morphs)[0] - target) ** 2)
+
+    def update(carry, key):
+        params, opt_state = carry
+
+        def member(params, prior, opt_state, key):  # its own minibatch: a bootstrap
+            idx = jax.random.randint(key, (cfg.batch_size,), 0, jnp.maximum(data.size, 1))
+            loss, grads = jax.value_and_grad(loss_fn)(params, prior, idx)
+            updates, opt_state = optimizer.update(grads, opt_state, params)
+            return optax.apply_updates(params, updates), opt_state, loss
+
+        new_params, new_opt, loss = jax.vmap(member)(
+            params, learner.prior, opt_state, jax.random.split(key, cfg.ensemble))
+        ready = data.size >= min(cfg.learning_starts, cfg.batch_size)
+        keep = lambda new, old: jnp.where(ready, new, old)  # noqa: E731
+        return (jax.tree.map(keep, new_params, params),
+                jax.tree.map(keep, new_opt, opt_state)), loss.mean()
+
+    (params, opt_state), losses = jax.lax.scan(
+        update, (learner.params, learner.opt_state),
+        jax.random.split(key, cfg.updates_per_step))
+    return params, opt_state, losses.mean()
+
+
+def candidate_walks(env: EvolutionEnv, cfg: PredictorConfig, key, parents: EvoState):
+    """(N * k) candidate walks from the N `parents`, k = min(candidates, actions): (the
+    body before each walk's last mutation, that mutation, the child, valid). Valid
+    mutations are the env's (`env.observe`'s mask: an env may allow fewer than its space)."""
+    n, nm = env.num_envs, env.space.num_mutations
+    mutate = jax.vmap(lambda m, a: env.space.mutate(m, a // nm, a % nm))  # over a flat batch
+    key_first, key_len, *key_steps = jax.random.split(key, cfg.reach + 1)
+    mask = env.observe(parents).mask  # (N, A)
+    k = min(cfg.candidates, mask.shape[-1])
+
+    def mask_of(body):  # (N * k, A): the env's mask of N x k bodies, k at a time
+        by_slot = jax.tree.map(lambda x: x.reshape(n, k, *x.shape[1:]), body)
+        masks = jax.vmap(lambda m: env.observe(parents.replace(morph=m)).mask, (0,))(
+            jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), by_slot))  # (k, N, A)
+        return jnp.swapaxes(masks, 0, 1).reshape(n * k, -1)
+
+    # the first mutations: distinct per parent (Gumbel top-k over its mask)
+    score, action = jax.lax.top_k(jnp.where(mask, jax.random.gumbel(key_first, mask.shape),
+                                            NEG), k)
+    valid, action = (score > NEG / 2).reshape(-1), action.reshape(-1)
+    body = jax.tree.map(lambda x: jnp.repeat(x, k, 0), parents.morph)  # (N * k, ...)
+    length = jax.random.randint(key_len, (n * k,), 1, cfg.reach + 1)
+    for i, key_step in enumerate(key_steps[: cfg.reach - 1], start=1):  # further ones
+        walked = mutate(body, action)
+        step_mask = mask_of(walked)
+        nxt = random_valid_actions(key_step, step_mask)
+        go = (i < length) & step_mask.any(-1)  # a walk with no valid step left ends here
+        body, action = tree_select(go, walked, body), jnp.where(go, nxt, action)
+    return body, action, mutate(body, action), valid
+
+
+
+def choose(env: EvolutionEnv, cfg: PredictorConfig, predict, prior, params, data: Data, keys,
+           parents: EvoState):
+    """Each parent's chosen walk (the body before its last mutation, that mutation) and
+    the ensemble's mean spread over the candidates: the acquisition over the ensemble's
+    (`params`, `prior`) predictions of each parent's `candidate_walks`."""
+    n = env.num_envs
+    key_walks, key_its = keys
+    body, action, kids, valid = candidate_walks(env, cfg, key_walks, parents)
+    k = action.shape[0] // n
+    pred = predict(params, prior, kids).reshape(-1, n, k)  # (E, N, k)
+    mean, spread = pred.mean(0), pred.std(0)
+    if cfg.acquisition == "its":
+        value = mean + spread * jax.random.normal(key_its, mean.shape)
+    else:
+        value = mean + cfg.kappa * spread
+    sig = jax.vmap(signature)(kids).reshape(n, k, 2)
+    valid = valid.reshape(n, k)
+    # A BODY ONCE: a candidate equal to an earlier one of its parent's is dropped
+    same = (sig[:, :, None] == sig[:, None, :]).all(-1) & valid[:, None, :]
+    valid &= ~jnp.any(jnp.tril(same, -1), -1)
+    if cfg.unseen_first:  # SEEN: a candidate's signature among the evaluations stored
+        filled = jnp.arange(cfg.buffer_size) < data.size
+        seen = jnp.any((sig[:, :, None] == data.signature).all(-1) & filled, -1)  # (N, k)
+        unseen = valid & ~seen
+        valid = jnp.where(unseen.any(1, keepdims=True), unseen, valid)
+    pick = jnp.arange(n) * k + jnp.argmax(jnp.where(valid, value, NEG), 1)
+    return jax.tree.map(lambda x: x[pick], body), action[pick], jnp.mean(spread)
+
+
 def make_policy(env: EvolutionEnv, cfg: PredictorConfig) -> Policy:
     """Selection (`next_evo`): store the children's evaluations, train the ensemble on them,
     choose the parents as regularized evolution does, then each parent's child by the
@@ -218,14 +331,6 @@ def make_policy(env: EvolutionEnv, cfg: PredictorConfig) -> Policy:
     init_net, predict = make_predictor(space, cfg)
     parents = baselines.make_regularized_evolution(env, cfg.parents())
     optimizer = optax.adam(cfg.learning_rate)
-    mutate = jax.vmap(lambda m, a: space.mutate(m, a // nm, a % nm))  # over a flat batch
-
-    def normaliser(data: Data):
-        filled = jnp.arange(cfg.buffer_size) < data.size
-        count = jnp.maximum(data.size, 1)
-        mean = jnp.sum(jnp.where(filled, data.fitness, 0.0)) / count
-        var = jnp.sum(jnp.where(filled, (data.fitness - mean) ** 2, 0.0)) / count
-        return mean, jnp.sqrt(var) + 1e-6
 
     def init(keys, obs: Observation) -> PredictorLearner:
         one = jax.tree.map(lambda x: x[0], obs.morph)
@@ -242,103 +347,15 @@ def make_policy(env: EvolutionEnv, cfg: PredictorConfig) -> Policy:
                                 jnp.zeros((), bool), {"loss": jnp.zeros(()),
                                                       "spread": jnp.zeros(())})
 
-    def store(data: Data, children: EvoState) -> Data:
-        idx = (data.pos + jnp.arange(n)) % cfg.buffer_size
-        return Data(jax.tree.map(lambda s, x: s.at[idx].set(x), data.morph, children.morph),
-                    data.fitness.at[idx].set(children.fitness),
-                    data.signature.at[idx].set(jax.vmap(signature)(children.morph)),
-                    (data.pos + n) % cfg.buffer_size, jnp.minimum(data.size + n, cfg.buffer_size))
-
-    def train(learner: PredictorLearner, data: Data, key):
-        mean, scale = normaliser(data)
-
-        def loss_fn(params, prior, idx):
-            target = (data.fitness[idx] - mean) / scale
-            morphs = jax.tree.map(lambda x: x[idx], data.morph)
-            one = lambda p: jax.tree.map(lambda x: x[None], p)  # noqa: E731
-            return jnp.mean((predict(one(params), one(prior), morphs)[0] - target) ** 2)
-
-        def update(carry, key):
-            params, opt_state = carry
-
-            def member(params, prior, opt_state, key):  # its own minibatch: a bootstrap
-                idx = jax.random.randint(key, (cfg.batch_size,), 0, jnp.maximum(data.size, 1))
-                loss, grads = jax.value_and_grad(loss_fn)(params, prior, idx)
-                updates, opt_state = optimizer.update(grads, opt_state, params)
-                return optax.apply_updates(params, updates), opt_state, loss
-
-            new_params, new_opt, loss = jax.vmap(member)(
-                params, learner.prior, opt_state, jax.random.split(key, cfg.ensemble))
-            ready = data.size >= min(cfg.learning_starts, cfg.batch_size)
-            keep = lambda new, old: jnp.where(ready, new, old)  # noqa: E731
-            return (jax.tree.map(keep, new_params, params),
-                    jax.tree.map(keep, new_opt, opt_state)), loss.mean()
-
-        (params, opt_state), losses = jax.lax.scan(
-            update, (learner.params, learner.opt_state),
-            jax.random.split(key, cfg.updates_per_step))
-        return params, opt_state, losses.mean()
-
-    def walks(key, parents: EvoState):
-        """(N * k) candidate walks from the N `parents`, k = min(candidates, actions): (the
-        body before each walk's last mutation, that mutation, the child, valid). Valid
-        mutations are the env's (`env.observe`'s mask: an env may allow fewer than its space)."""
-        key_first, key_len, *key_steps = jax.random.split(key, cfg.reach + 1)
-        mask = env.observe(parents).mask  # (N, A)
-        k = min(cfg.candidates, mask.shape[-1])
-
-        def mask_of(body):  # (N * k, A): the env's mask of N x k bodies, k at a time
-            by_slot = jax.tree.map(lambda x: x.reshape(n, k, *x.shape[1:]), body)
-            masks = jax.vmap(lambda m: env.observe(parents.replace(morph=m)).mask, (0,))(
-                jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), by_slot))  # (k, N, A)
-            return jnp.swapaxes(masks, 0, 1).reshape(n * k, -1)
-
-        # the first mutations: distinct per parent (Gumbel top-k over its mask)
-        score, action = jax.lax.top_k(jnp.where(mask, jax.random.gumbel(key_first, mask.shape),
-                                                NEG), k)
-        valid, action = (score > NEG / 2).reshape(-1), action.reshape(-1)
-        body = jax.tree.map(lambda x: jnp.repeat(x, k, 0), parents.morph)  # (N * k, ...)
-        length = jax.random.randint(key_len, (n * k,), 1, cfg.reach + 1)
-        for i, key_step in enumerate(key_steps[: cfg.reach - 1], start=1):  # further ones
-            walked = mutate(body, action)
-            step_mask = mask_of(walked)
-            nxt = random_valid_actions(key_step, step_mask)
-            go = (i < length) & step_mask.any(-1)  # a walk with no valid step left ends here
-            body, action = tree_select(go, walked, body), jnp.where(go, nxt, action)
-        return body, action, mutate(body, action), valid
-
-    def choose(learner: PredictorLearner, params, data: Data, keys, parents: EvoState):
-        """Each parent's chosen walk (the body before its last mutation, that mutation) and
-        the ensemble's mean spread over the candidates."""
-        key_walks, key_its = keys
-        body, action, kids, valid = walks(key_walks, parents)
-        k = action.shape[0] // n
-        pred = predict(params, learner.prior, kids).reshape(-1, n, k)  # (E, N, k)
-        mean, spread = pred.mean(0), pred.std(0)
-        if cfg.acquisition == "its":
-            value = mean + spread * jax.random.normal(key_its, mean.shape)
-        else:
-            value = mean + cfg.kappa * spread
-        sig = jax.vmap(signature)(kids).reshape(n, k, 2)
-        valid = valid.reshape(n, k)
-        # A BODY ONCE: a candidate equal to an earlier one of its parent's is dropped
-        same = (sig[:, :, None] == sig[:, None, :]).all(-1) & valid[:, None, :]
-        valid &= ~jnp.any(jnp.tril(same, -1), -1)
-        if cfg.unseen_first:  # SEEN: a candidate's signature among the evaluations stored
-            filled = jnp.arange(cfg.buffer_size) < data.size
-            seen = jnp.any((sig[:, :, None] == data.signature).all(-1) & filled, -1)  # (N, k)
-            unseen = valid & ~seen
-            valid = jnp.where(unseen.any(1, keepdims=True), unseen, valid)
-        pick = jnp.arange(n) * k + jnp.argmax(jnp.where(valid, value, NEG), 1)
-        return jax.tree.map(lambda x: x[pick], body), action[pick], jnp.mean(spread)
-
     def next_evo(env, learner: PredictorLearner, keys, parents_evo, children, first, done):
         key_pop, key_train, *key_choose = keys
-        data = store(learner.data, children)  # STORE every child's evaluation
-        params, opt_state, loss = train(learner, data, key_train)  # LEARN from them
+        data = store(cfg, learner.data, children)  # STORE every child's evaluation
+        params, opt_state, loss = train(cfg, predict, optimizer, learner, data,
+                                        key_train)  # LEARN from them
         pop, evo = parents.next_evo(env, learner.pop, key_pop[None], parents_evo, children,
                                     first, done)  # the PARENTS: regularized evolution's
-        body, action, spread = choose(learner, params, data, key_choose, evo)
+        body, action, spread = choose(env, cfg, predict, learner.prior, params, data, key_choose,
+                                      evo)
         chose = data.size >= cfg.learning_starts  # the CHILD: the acquisition's best walk
         evo = evo.replace(morph=tree_select(jnp.broadcast_to(chose, (n,)), body, evo.morph))
         return learner.replace(params=params, opt_state=opt_state, data=data, pop=pop,
