@@ -376,6 +376,39 @@ def test_a_full_disk_stops_the_run_with_one_line_and_exit_1(tmp_path, capsys, mo
                       "--resume)"), err
 
 
+def test_a_read_only_body_log_stops_the_run_with_one_line_and_resumes(tmp_path, straight,
+                                                                     capsys, monkeypatch):
+    """The run directory made read-only after step 3's chunk and checkpoint, where the body
+    log writes (we run as root, where chmod stops no write, so its connection is opened again
+    read-only: SQLite's own error, not an OSError): exit 1, one line naming bodies.sqlite and
+    step 3, no traceback; a --resume once the fault is gone ends as the uninterrupted run."""
+    from evojax_morph.run import bodylog
+
+    add = bodylog.BodyLog.add
+
+    def read_only_after_3(self, step, *args, **kwargs):
+        if step == 4:
+            self.db.close()
+            self.db = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True)
+        return add(self, step, *args, **kwargs)
+
+    out = tmp_path / "run"
+    with monkeypatch.context() as m:
+        m.setattr(bodylog.BodyLog, "add", read_only_after_3)
+        with pytest.raises(SystemExit) as e:
+            cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 1 and len(err) == 1, err
+    assert err[0] == ("python -m evojax_morph.run: error: attempt to write a readonly database "
+                      f"({out / 'bodies.sqlite'}); the run can --resume from step 3 (--out "
+                      f"{out} --resume)"), err
+    assert cli.main(TINY + ["--out", str(out), "--resume"]) == 0
+    assert "resumed at step 3" in capsys.readouterr().out
+    for name in ("metrics.csv", "summary.json"):
+        assert (out / name).read_text() == (straight / name).read_text(), name
+    assert log_rows(out) == log_rows(straight)
+
+
 def _snapshot(run_dir: Path) -> dict:
     return {str(f.relative_to(run_dir)): f.read_bytes()
             for f in sorted(run_dir.rglob("*")) if f.is_file()}

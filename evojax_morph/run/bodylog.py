@@ -17,6 +17,8 @@ that was changed, damaged or replaced.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import hashlib
 import json
 import sqlite3
@@ -66,19 +68,40 @@ def proof(path: Path, step: int) -> dict:
     return {"rows": rows, "sha256": found.hexdigest()}
 
 
+# SQLite's errors of a write the machine refused, as the OSError they are (`written`).
+WRITE_ERRORS = {sqlite3.SQLITE_READONLY: errno.EROFS, sqlite3.SQLITE_FULL: errno.ENOSPC,
+                sqlite3.SQLITE_IOERR: errno.EIO, sqlite3.SQLITE_CANTOPEN: errno.EACCES}
+
+
+@contextlib.contextmanager
+def written(path: Path):
+    """SQLite's error of a write to `path` that the machine refused (a folder made read-only,
+    a full disk, an I/O error) raised as an OSError naming `path`, as a failed write of any
+    other run file is (`python -m evojax_morph.run` says it in one line, exit 1)."""
+    try:
+        yield
+    except sqlite3.OperationalError as e:
+        code = WRITE_ERRORS.get(getattr(e, "sqlite_errorcode", 0) & 0xFF)
+        if code is None:
+            raise
+        raise OSError(code, str(e), str(path)) from e
+
+
 class BodyLog:
-    """The log of one run in the SQLite file `path` (created if missing)."""
+    """The log of one run in the SQLite file `path` (created if missing); its writes fail as
+    OSError (`written`)."""
 
     def __init__(self, path: Path, space: Space):
-        self.space = space
-        self.db = sqlite3.connect(str(path))
-        self.db.executescript(SCHEMA)
-        self.db.execute("CREATE INDEX IF NOT EXISTS by_body ON bodies (body)")
-        columns = {row[1] for row in self.db.execute("PRAGMA table_info(bodies)")}
-        for gait in ("distance", "upright"):  # a log begun before the gait was kept
-            if gait not in columns:
-                self.db.execute(f"ALTER TABLE bodies ADD COLUMN {gait} REAL")
-        self.db.commit()
+        self.space, self.path = space, Path(path)
+        with written(self.path):
+            self.db = sqlite3.connect(str(path))
+            self.db.executescript(SCHEMA)
+            self.db.execute("CREATE INDEX IF NOT EXISTS by_body ON bodies (body)")
+            columns = {row[1] for row in self.db.execute("PRAGMA table_info(bodies)")}
+            for gait in ("distance", "upright"):  # a log begun before the gait was kept
+                if gait not in columns:
+                    self.db.execute(f"ALTER TABLE bodies ADD COLUMN {gait} REAL")
+            self.db.commit()
         self._names: dict[bytes, str] = {}
         self._rows, self._hash = 0, hashlib.sha256()  # what `proof` says
 
@@ -98,14 +121,15 @@ class BodyLog:
         gait = lambda x, i: None if x is None or not np.isfinite(x[i]) else float(x[i])  # noqa: E731
         at = lambda tree, i: Morphology(*(np.asarray(x)[i] for x in (  # noqa: E731
             tree.active, tree.parent, tree.kind, tree.site, tree.attrs)))
-        rows = [
-            (step, i, self.name(at(morphs, i)), float(fitness[i]), float(fitness_std[i]),
-             int(bool(diverged[i])), None if parents is None else self.name(at(parents, i)),
-             gait(distance, i), gait(upright, i))
-            for i in range(len(fitness))
-        ]
-        self.db.executemany(f"INSERT INTO bodies ({COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                            rows)
+        with written(self.path):
+            rows = [
+                (step, i, self.name(at(morphs, i)), float(fitness[i]), float(fitness_std[i]),
+                 int(bool(diverged[i])), None if parents is None else self.name(at(parents, i)),
+                 gait(distance, i), gait(upright, i))
+                for i in range(len(fitness))
+            ]
+            self.db.executemany(
+                f"INSERT INTO bodies ({COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)", rows)
         self._rows += _digest(rows, self._hash)
 
     def proof(self) -> dict:
@@ -114,13 +138,15 @@ class BodyLog:
         return {"rows": self._rows, "sha256": self._hash.hexdigest()}
 
     def commit(self) -> None:
-        self.db.commit()
+        with written(self.path):
+            self.db.commit()
 
     def resume(self, step: int) -> None:
         """Forgets the steps after `step` (a resumed run redoes them; -1: every step) and goes
         on from the proof of those before."""
-        self.db.execute("DELETE FROM bodies WHERE step > ?", (step,))
-        self.db.commit()
+        with written(self.path):
+            self.db.execute("DELETE FROM bodies WHERE step > ?", (step,))
+            self.db.commit()
         self._rows, self._hash = _read(self.db, step)
 
     def close(self) -> None:
