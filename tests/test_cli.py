@@ -494,6 +494,25 @@ def test_a_resume_refuses_a_log_or_a_checkpoint_not_its_own(tmp_path, straight, 
     assert (copied / "summary.json").read_text() == (straight / "summary.json").read_text()
 
 
+def test_a_resume_rolls_back_a_body_log_write_cut_short(tmp_path, straight, capsys):
+    """A kill -9 inside a body log's write (its pages spilled to the file, the hot journal
+    beside it) leaves a log that a read-only open fails on: the resume rolls the write back,
+    as SQLite does, and ends as the uninterrupted run."""
+    out = tmp_path / "run"
+    shutil.copytree(straight, out)
+    cut = ("import os, sqlite3, sys; db = sqlite3.connect(sys.argv[1]); "
+           "db.execute('PRAGMA cache_size=1'); db.executemany('INSERT INTO bodies (step, "
+           "evolution, body, fitness, fitness_std, diverged) VALUES (99, ?, ?, 0, 0, 0)', "
+           "[(i, 'x' * 200) for i in range(3000)]); os._exit(0)")
+    subprocess.run([sys.executable, "-c", cut, str(out / "bodies.sqlite")], check=True)
+    assert (out / "bodies.sqlite-journal").exists()
+    capsys.readouterr()
+    assert cli.main(TINY + ["--out", str(out), "--resume"]) == 0
+    assert "resumed at step 9" in capsys.readouterr().out
+    assert (out / "summary.json").read_text() == (straight / "summary.json").read_text()
+    assert log_rows(out) == log_rows(straight)
+
+
 def test_no_damaged_data_file_is_restored(tmp_path, straight, capsys):
     """Each data file of the newest checkpoint, one at a time, with bytes inverted in place,
     cut to half, then deleted: the restore a --resume makes (`restore_newest` with

@@ -56,11 +56,14 @@ def _read(db: sqlite3.Connection, step: int):
 
 def proof(path: Path, step: int) -> dict:
     """{"rows", "sha256"} of the log in the file `path` up to `step` (`BodyLog.proof`), read
-    without changing it; a missing file holds no rows. Raises sqlite3's error where it does
-    not read (damaged, cut short)."""
+    without changing it, except that a write a kill cut short is rolled back (its hot journal,
+    PATH-journal, which SQLite rolls back on any open that may write, and a read-only open
+    fails on); a missing file holds no rows. Raises sqlite3's error where it does not read
+    (damaged, cut short)."""
     if not Path(path).exists():
         return {"rows": 0, "sha256": hashlib.sha256().hexdigest()}
-    db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    journal = Path(f"{path}-journal").exists()
+    db = sqlite3.connect(f"file:{path}?mode={'rw' if journal else 'ro'}", uri=True)
     try:
         rows, found = _read(db, step)
     finally:
