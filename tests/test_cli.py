@@ -455,7 +455,8 @@ def test_resume_past_a_damaged_checkpoint(tmp_path, straight, capsys):
 
 def test_a_resume_refuses_a_log_or_a_checkpoint_not_its_own(tmp_path, straight, capsys):
     """Every checkpoint records its step and the body log's proof up to it (issue 81): a log
-    edited, deleted or cut short is refused with one line, exit 2, the directory as it was; a
+    edited, deleted or cut short is refused with one line, exit 2, the directory as it was, and
+    so is a metrics.csv that lacks rows up to the checkpoint (cut short, emptied, deleted); a
     checkpoint copied to another step's name is damaged (skipped, moved aside), and the resume
     goes on from the one before as an uninterrupted run does."""
     def refused(damage, says):
@@ -478,9 +479,22 @@ def test_a_resume_refuses_a_log_or_a_checkpoint_not_its_own(tmp_path, straight, 
         db.close()
 
     ours = "is not the body log checkpoint 9 was saved with (40 evaluations up to step 9; "
+    def metrics(damage):  # metrics.csv damaged, the log whole
+        def damaged(f):
+            damage(f.with_name("metrics.csv"))
+        damaged.__name__ = f"metrics_{damage.__name__}"
+        return damaged
+
+    def empty(f):
+        f.write_text("")
+
     refused(edit, ours + "it holds as many, with other values)")
     refused(Path.unlink, ours + "it holds 0)")
     refused(truncate, "bodies.sqlite does not read (DatabaseError: ")
+    rows = "metrics.csv' does not hold the rows of steps 1 to 9 whole (it holds "
+    refused(metrics(truncate), rows + "4)")  # cut in the row of step 5
+    refused(metrics(empty), rows + "0)")
+    refused(metrics(Path.unlink), "metrics.csv does not read (FileNotFoundError: ")
 
     copied = tmp_path / "copied"
     shutil.copytree(straight, copied)
