@@ -297,8 +297,9 @@ def test_a_rewritten_file_is_the_old_one_or_the_new_one_whole(tmp_path, monkeypa
 
 def test_a_second_run_on_a_held_directory_exits_2_naming_the_holder(tmp_path, capsys):
     """While another process holds --out (its .lock flocked, its pid inside, as a run does),
-    a run there exits 2 at once with one line naming that pid, and writes nothing
-    there; once the holder is killed (-9: the kernel releases its lock), a run there goes."""
+    a run there exits 2 at once with one line naming that pid, also once it has saved a
+    checkpoint (not "pass --resume"), and writes nothing there; once the holder is killed (-9:
+    the kernel releases its lock), a run there goes."""
     out = tmp_path / "run"
     out.mkdir()
     hold = ("import fcntl, os, sys, time; f = open(sys.argv[1], 'a+'); "
@@ -308,15 +309,19 @@ def test_a_second_run_on_a_held_directory_exits_2_naming_the_holder(tmp_path, ca
                               stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "held"
-        with pytest.raises(SystemExit) as e:
-            cli.main(TINY + ["--steps", "3", "--out", str(out)])
-        assert e.value.code == 2
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and f"in use by another run (pid {holder.pid})" in err[0], err
-        assert sorted(p.name for p in out.iterdir()) == [".lock"]
+        for made in ([], ["checkpoints"]):  # its first checkpoint saved: not one to --resume
+            for name in made:
+                (out / name).mkdir()
+            with pytest.raises(SystemExit) as e:
+                cli.main(TINY + ["--steps", "3", "--out", str(out)])
+            assert e.value.code == 2
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and f"in use by another run (pid {holder.pid})" in err[0], err
+            assert sorted(p.name for p in out.iterdir()) == [".lock"] + made
     finally:
         holder.kill()
         holder.wait()
+    (out / "checkpoints").rmdir()
     assert cli.main(TINY + ["--steps", "3", "--out", str(out)]) == 0
 
 

@@ -83,10 +83,9 @@ def lock(out: Path):
         fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         f.seek(0)
-        holder = f.read().strip() or "unknown"
+        pid = f.read().strip() or "unknown"
         f.close()
-        raise Locked(f"{str(out)!r} is in use by another run (pid {holder}): wait for it to "
-                     "end, or pass another --out") from None
+        raise Locked(in_use(out, pid)) from None
     try:
         f.seek(0)
         f.truncate()
@@ -95,6 +94,27 @@ def lock(out: Path):
         yield
     finally:
         f.close()
+
+
+def in_use(out: Path, pid: str) -> str:
+    """What a run says of `out` held by the run of `pid` (`lock`, `holder`)."""
+    return (f"{str(out)!r} is in use by another run (pid {pid}): wait for it to end, or pass "
+            "another --out")
+
+
+def holder(out: Path) -> str | None:
+    """The pid of the run that holds `out` (`lock`), None where none does: asked before
+    saying that `out` holds a run to --resume, which a live run's directory does not."""
+    try:
+        f = open(out / ".lock")  # noqa: SIM115
+    except FileNotFoundError:
+        return None
+    with f:
+        try:  # shared, for a moment: taken where no run holds the exclusive lock
+            fcntl.flock(f, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return f.read().strip() or "unknown"
+    return None
 
 
 class Damaged(ValueError):

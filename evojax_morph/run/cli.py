@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -111,7 +112,7 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
         parser.error(f"--resume: no run in {str(out)!r} (no config.json)")
     try:
         out.mkdir(parents=True, exist_ok=True)
-        probe = out / f".write_test{jax.process_index()}"
+        probe = out / f".write_test{os.getpid()}"  # two runs starting there at once apart
         probe.write_text("")
         probe.unlink()
     except OSError as e:
@@ -134,6 +135,11 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
         cfg = resumed(parser, cfg, args, given)
         cfg = dataclasses.replace(cfg, physics=physics(parser, cfg.physics, cfg.fitness))
     elif (out / "checkpoints").exists():
+        pid = checkpoints.holder(out)
+        if pid is not None:  # a live run: not one to --resume (yet)
+            print(f"python -m evojax_morph.run: error: {checkpoints.in_use(out, pid)}",
+                  file=sys.stderr)
+            raise SystemExit(2)
         parser.error(
             f"{str(out)!r} already holds a run: pass --resume to continue it, or another --out"
         )
