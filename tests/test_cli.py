@@ -114,18 +114,20 @@ def test_distributed_without_a_coordinator_exits_2(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
-@pytest.mark.parametrize("damage", ["cut", "key", "type", "space"])
+@pytest.mark.parametrize("damage", ["cut", "key", "type", "space", "seed", "steps"])
 def test_a_resume_of_a_damaged_config_exits_2(damage, capsys, tmp_path):
-    """A config.json cut short, with a key RunConfig does not know, a value of the wrong type
-    or an unknown space: --resume exits 2 saying the file is not a run's config, and changes
-    nothing there."""
+    """A config.json cut short, with a key RunConfig does not know, a value of the wrong type,
+    an unknown space, or a value no run starts with (a seed past 64 bits, negative steps):
+    --resume exits 2 saying the file is not a run's config, and changes nothing there."""
     import dataclasses
 
     config = dataclasses.asdict(RunConfig())
     text = {"cut": json.dumps(config)[:40],
             "key": json.dumps({**config, "speed": 3}),
             "type": json.dumps({**config, "steps": "nine"}),
-            "space": json.dumps({**config, "space": "nope"})}[damage]
+            "space": json.dumps({**config, "space": "nope"}),
+            "seed": json.dumps({**config, "seed": 2**70}),
+            "steps": json.dumps({**config, "steps": -5})}[damage]
     out = tmp_path / "run"
     out.mkdir()
     (out / "config.json").write_text(text)

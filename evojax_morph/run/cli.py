@@ -129,7 +129,9 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
                               and type(getattr(default, f.name)) is float)]
             if wrong:
                 raise TypeError(f"wrong type of {', '.join(wrong)}")
-        except (ValueError, TypeError) as e:  # cut short, an unknown key, space or type
+            if bad_value(cfg):  # a value no run starts with (a seed past 64 bits, -5 steps)
+                raise ValueError(bad_value(cfg))
+        except (ValueError, TypeError) as e:  # cut short, an unknown key, space, type or value
             parser.error(f"--resume: {str(saved)!r} is not a run's config.json ({e})")
         args.classifier, args.table = classifier, table  # compared resolved
         cfg = resumed(parser, cfg, args, given)
@@ -327,21 +329,9 @@ def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
             make_task(args.task)
     except ValueError as e:  # an unknown name, said by its registry
         parser.error(str(e))
-    if not -(2**63) <= args.seed < 2**63:  # what a PRNG key takes
-        parser.error(f"--seed must fit in 64 bits (-2**63 to 2**63 - 1), got {args.seed}")
-    for name in POSITIVE:
-        value = getattr(args, name)  # None: the default, set by `parse`
-        if value is not None and value < (0 if name == "train_steps" else 1):
-            parser.error(f"--{name.replace('_', '-')} must be positive, got {value}")
-    if args.horizon < 0:
-        parser.error("--horizon must be >= 0")
-    problem = agents.settings_problem(args.agent, args.num_envs, args.population, args.tournament)
+    problem = bad_value(args)
     if problem:
         parser.error(problem)
-    if args.confirm < 0:
-        parser.error("--confirm must be >= 0 (0: no confirm stage)")
-    if args.confirm_controllers < 2:
-        parser.error("--confirm-controllers must be at least 2 (an interval needs 2 values)")
     kind = get_fitness(args.fitness)
     inputs = Inputs(args.space, args.task or "", args.classifier, args.table,
                     args.controllers or 0)
@@ -352,6 +342,27 @@ def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
             parser.error(str(e))
     if args.task is None:
         args.task = kind.default_task(inputs)
+
+
+def bad_value(args) -> str | None:
+    """Why the sizes and numbers of `args` (the flags, or a saved RunConfig) cannot make a run,
+    or None where they can."""
+    if not -(2**63) <= args.seed < 2**63:  # what a PRNG key takes
+        return f"--seed must fit in 64 bits (-2**63 to 2**63 - 1), got {args.seed}"
+    for name in POSITIVE:
+        value = getattr(args, name)  # None: the default, set by `parse`
+        if value is not None and value < (0 if name == "train_steps" else 1):
+            return f"--{name.replace('_', '-')} must be positive, got {value}"
+    if args.horizon < 0:
+        return "--horizon must be >= 0"
+    problem = agents.settings_problem(args.agent, args.num_envs, args.population, args.tournament)
+    if problem:
+        return problem
+    if args.confirm < 0:
+        return "--confirm must be >= 0 (0: no confirm stage)"
+    if args.confirm_controllers < 2:
+        return "--confirm-controllers must be at least 2 (an interval needs 2 values)"
+    return None
 
 
 def physics(parser: argparse.ArgumentParser, name: str, fitness: str) -> str:
