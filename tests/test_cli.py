@@ -659,6 +659,30 @@ def test_body_log_of_a_run(straight):
     assert summary["controllers"] == [] and not (straight / "best.gif").exists()
 
 
+def test_a_damaged_shape_in_the_body_log_is_named(tmp_path, straight):
+    """A body's shape in the log that does not read, or that is another body's, is an error
+    naming the body (`checkpoints.Damaged`: the run exits 2), never a traceback in the confirm
+    stage or a body confirmed that the log did not evaluate."""
+    from evojax_morph.run import bodylog
+
+    space = em.make_space("bad_walker")
+    path = tmp_path / "bodies.sqlite"
+    shutil.copy(straight / "bodies.sqlite", path)
+    names = [b["body"] for b in bodylog.best_bodies(path, 2)]
+    assert list(bodylog.shapes(path, space, names)) == names
+    db = sqlite3.connect(path)
+    db.execute("UPDATE shapes SET morphology = (SELECT morphology FROM shapes WHERE body = ?) "
+               "WHERE body = ?", names[::-1])
+    db.commit()
+    with pytest.raises(Damaged, match=r"the shape kept for body .* is another body's$"):
+        bodylog.shapes(path, space, names)
+    db.execute("UPDATE shapes SET morphology = 'garbage' WHERE body = ?", names[:1])
+    db.commit()
+    db.close()
+    with pytest.raises(Damaged, match=r"the shape of body .* does not read \(JSONDecodeError"):
+        bodylog.shapes(path, space, names)
+
+
 def _by_thread(records, done: str) -> collections.Counter:
     """(on the warmup thread, program name) -> how many of `records` begin with `done`."""
     return collections.Counter(

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from evojax_morph.morphology import Morphology
+from evojax_morph.run.checkpoints import Damaged
 from evojax_morph.spaces import Space
 
 SCHEMA = """CREATE TABLE IF NOT EXISTS bodies (
@@ -193,7 +194,9 @@ def best_draw(path: Path) -> dict:
 
 def shapes(path: Path, space: Space, names: list[str]) -> dict[str, Morphology]:
     """The bodies of the log named `names`, as host-side morphologies; a name the log holds no
-    shape of (a run begun before shapes were kept) is left out."""
+    shape of (a run begun before shapes were kept) is left out. Raises `checkpoints.Damaged`
+    where a shape kept does not read or is another body's (its canonical name not its key): a
+    run confirms no body its log did not evaluate."""
     db = sqlite3.connect(str(path))
     try:
         found = dict(db.execute(
@@ -204,4 +207,14 @@ def shapes(path: Path, space: Space, names: list[str]) -> dict[str, Morphology]:
         found = {}
     finally:
         db.close()
-    return {name: space.from_json(found[name]) for name in names if name in found}
+    kept = {}
+    for name in (name for name in names if name in found):
+        try:
+            kept[name] = space.from_json(found[name])
+            other = space.canonical(kept[name]) != name
+        except Exception as e:
+            raise Damaged(f"{path}: the shape of body {name} does not read "
+                          f"({type(e).__name__}: {e})") from None
+        if other:
+            raise Damaged(f"{path}: the shape kept for body {name} is another body's")
+    return kept
