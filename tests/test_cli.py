@@ -416,6 +416,33 @@ def test_a_read_only_body_log_stops_the_run_with_one_line_and_resumes(tmp_path, 
     assert log_rows(out) == log_rows(straight)
 
 
+def test_a_checkpoint_save_on_a_full_disk_stops_the_run_with_one_line(tmp_path, capsys,
+                                                                      monkeypatch):
+    """A checkpoint save the disk refuses (Orbax raises TensorStore's ValueError, as on a real
+    full disk, where it was a traceback after four from Orbax's threads' logs) stops the run
+    with exit 1 and one line naming the checkpoints and the step it can resume from."""
+    import orbax.checkpoint as ocp
+
+    save = ocp.CheckpointManager.save
+
+    def full_at_6(self, step, *args, **kwargs):
+        if step == 6:
+            raise ValueError('RESOURCE_EXHAUSTED: Error writing "evo.distance/0" in OCDBT '
+                             "database: Failed to write 115488 bytes to file 19: No space left "
+                             "on device [os_error_code='28']")
+        return save(self, step, *args, **kwargs)
+
+    monkeypatch.setattr(ocp.CheckpointManager, "save", full_at_6)
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as e:
+        cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 1 and len(err) == 1, err
+    assert err[0] == (f"python -m evojax_morph.run: error: No space left on device "
+                      f"({out / 'checkpoints'}); the run can --resume from step 3 (--out {out} "
+                      "--resume)"), err
+
+
 def _snapshot(run_dir: Path) -> dict:
     return {str(f.relative_to(run_dir)): f.read_bytes()
             for f in sorted(run_dir.rglob("*")) if f.is_file()}

@@ -19,6 +19,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -58,6 +59,32 @@ def checkpoint_manager(out: Path):
 
     options = ocp.CheckpointManagerOptions(max_to_keep=2, create=True)
     return ocp, ocp.CheckpointManager(out.resolve() / "checkpoints", options=options)
+
+
+OS_ERROR = re.compile(r"os_error_code='(\d+)'")  # how TensorStore's errors name the OS's
+
+
+@contextlib.contextmanager
+def saving(folder: Path):
+    """A checkpoint save the machine refused (a full disk, a folder made read-only), which
+    Orbax raises as TensorStore's ValueError naming the OS's error code, raised as the OSError
+    it is, naming `folder` (`python -m evojax_morph.run` says it in one line, exit 1); the logs
+    of it from Orbax's threads (a traceback each) are dropped from then on."""
+    logging.getLogger("absl").addFilter(_not_a_machine_fault)
+    try:
+        yield
+    except ValueError as e:
+        found = OS_ERROR.search(str(e))
+        if found is None:
+            raise
+        code = int(found.group(1))
+        raise OSError(code, os.strerror(code), str(folder)) from e
+
+
+def _not_a_machine_fault(record) -> bool:
+    """Whether the log `record` is not of a write the machine refused (`saving`)."""
+    e = record.exc_info[1] if record.exc_info else None
+    return not (OS_ERROR.search(record.getMessage()) or (e and OS_ERROR.search(str(e))))
 
 
 class ResumeError(RuntimeError):

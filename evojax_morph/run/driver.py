@@ -137,12 +137,13 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
     ahead.collect(_evolve_jobs(run, abstract, step or 0) + confirm_jobs(run, end)
                   + report_jobs(run, best_controllers(cfg, run.p)))
     try:
-        step, state, rows, loading = _warm_up(run, step, state, ahead, clock)
-        clock.phase("build_and_m0")
-        evolved = _evolve(run, step, state, rows, ahead, clock, loading)
-        best = confirm_stage(run, evolved, ahead, clock)
-        if run.lead:
-            report_stage(run, evolved, best, clock)
+        with checkpoints.saving(out / "checkpoints"):
+            step, state, rows, loading = _warm_up(run, step, state, ahead, clock)
+            clock.phase("build_and_m0")
+            evolved = _evolve(run, step, state, rows, ahead, clock, loading)
+            best = confirm_stage(run, evolved, ahead, clock)
+            if run.lead:
+                report_stage(run, evolved, best, clock)
     except OSError:  # a full disk, a folder made read-only: the checkpoints in flight land
         with contextlib.suppress(Exception):  # first, so the run resumes from the newest
             run.manager.wait_until_finished()
