@@ -112,7 +112,8 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
         parser.error(f"--resume: no run in {str(out)!r} (no config.json)")
     try:
         out.mkdir(parents=True, exist_ok=True)
-        probe = out / f".write_test{os.getpid()}"  # two runs starting there at once apart
+        # apart for two runs starting there at once, and for the processes of one on several hosts
+        probe = out / f".write_test{jax.process_index()}-{os.getpid()}"
         probe.write_text("")
         probe.unlink()
     except OSError as e:
