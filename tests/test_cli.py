@@ -114,18 +114,20 @@ def test_distributed_without_a_coordinator_exits_2(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
-@pytest.mark.parametrize("damage", ["cut", "key", "type", "space"])
+@pytest.mark.parametrize("damage", ["cut", "key", "type", "space", "seed", "steps"])
 def test_a_resume_of_a_damaged_config_exits_2(damage, capsys, tmp_path):
-    """A config.json cut short, with a key RunConfig does not know, a value of the wrong type
-    or an unknown space: --resume exits 2 saying the file is not a run's config, and changes
-    nothing there."""
+    """A config.json cut short, with a key RunConfig does not know, a value of the wrong type,
+    an unknown space, or a value no run starts with (a seed past 64 bits, negative steps):
+    --resume exits 2 saying the file is not a run's config, and changes nothing there."""
     import dataclasses
 
     config = dataclasses.asdict(RunConfig())
     text = {"cut": json.dumps(config)[:40],
             "key": json.dumps({**config, "speed": 3}),
             "type": json.dumps({**config, "steps": "nine"}),
-            "space": json.dumps({**config, "space": "nope"})}[damage]
+            "space": json.dumps({**config, "space": "nope"}),
+            "seed": json.dumps({**config, "seed": 2**70}),
+            "steps": json.dumps({**config, "steps": -5})}[damage]
     out = tmp_path / "run"
     out.mkdir()
     (out / "config.json").write_text(text)
@@ -297,8 +299,9 @@ def test_a_rewritten_file_is_the_old_one_or_the_new_one_whole(tmp_path, monkeypa
 
 def test_a_second_run_on_a_held_directory_exits_2_naming_the_holder(tmp_path, capsys):
     """While another process holds --out (its .lock flocked, its pid inside, as a run does),
-    a run there exits 2 at once with one line naming that pid, and writes nothing
-    there; once the holder is killed (-9: the kernel releases its lock), a run there goes."""
+    a run there exits 2 at once with one line naming that pid, also once it has saved a
+    checkpoint (not "pass --resume"), and writes nothing there; once the holder is killed (-9:
+    the kernel releases its lock), a run there goes."""
     out = tmp_path / "run"
     out.mkdir()
     hold = ("import fcntl, os, sys, time; f = open(sys.argv[1], 'a+'); "
@@ -308,15 +311,19 @@ def test_a_second_run_on_a_held_directory_exits_2_naming_the_holder(tmp_path, ca
                               stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "held"
-        with pytest.raises(SystemExit) as e:
-            cli.main(TINY + ["--steps", "3", "--out", str(out)])
-        assert e.value.code == 2
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and f"in use by another run (pid {holder.pid})" in err[0], err
-        assert sorted(p.name for p in out.iterdir()) == [".lock"]
+        for made in ([], ["checkpoints"]):  # its first checkpoint saved: not one to --resume
+            for name in made:
+                (out / name).mkdir()
+            with pytest.raises(SystemExit) as e:
+                cli.main(TINY + ["--steps", "3", "--out", str(out)])
+            assert e.value.code == 2
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and f"in use by another run (pid {holder.pid})" in err[0], err
+            assert sorted(p.name for p in out.iterdir()) == [".lock"] + made
     finally:
         holder.kill()
         holder.wait()
+    (out / "checkpoints").rmdir()
     assert cli.main(TINY + ["--steps", "3", "--out", str(out)]) == 0
 
 
@@ -376,6 +383,66 @@ def test_a_full_disk_stops_the_run_with_one_line_and_exit_1(tmp_path, capsys, mo
                       "--resume)"), err
 
 
+def test_a_read_only_body_log_stops_the_run_with_one_line_and_resumes(tmp_path, straight,
+                                                                     capsys, monkeypatch):
+    """The run directory made read-only after step 3's chunk and checkpoint, where the body
+    log writes (we run as root, where chmod stops no write, so its connection is opened again
+    read-only: SQLite's own error, not an OSError): exit 1, one line naming bodies.sqlite and
+    step 3, no traceback; a --resume once the fault is gone ends as the uninterrupted run."""
+    from evojax_morph.run import bodylog
+
+    add = bodylog.BodyLog.add
+
+    def read_only_after_3(self, step, *args, **kwargs):
+        if step == 4:
+            self.db.close()
+            self.db = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True)
+        return add(self, step, *args, **kwargs)
+
+    out = tmp_path / "run"
+    with monkeypatch.context() as m:
+        m.setattr(bodylog.BodyLog, "add", read_only_after_3)
+        with pytest.raises(SystemExit) as e:
+            cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 1 and len(err) == 1, err
+    assert err[0] == ("python -m evojax_morph.run: error: attempt to write a readonly database "
+                      f"({out / 'bodies.sqlite'}); the run can --resume from step 3 (--out "
+                      f"{out} --resume)"), err
+    assert cli.main(TINY + ["--out", str(out), "--resume"]) == 0
+    assert "resumed at step 3" in capsys.readouterr().out
+    for name in ("metrics.csv", "summary.json"):
+        assert (out / name).read_text() == (straight / name).read_text(), name
+    assert log_rows(out) == log_rows(straight)
+
+
+def test_a_checkpoint_save_on_a_full_disk_stops_the_run_with_one_line(tmp_path, capsys,
+                                                                      monkeypatch):
+    """A checkpoint save the disk refuses (Orbax raises TensorStore's ValueError, as on a real
+    full disk, where it was a traceback after four from Orbax's threads' logs) stops the run
+    with exit 1 and one line naming the checkpoints and the step it can resume from."""
+    import orbax.checkpoint as ocp
+
+    save = ocp.CheckpointManager.save
+
+    def full_at_6(self, step, *args, **kwargs):
+        if step == 6:
+            raise ValueError('RESOURCE_EXHAUSTED: Error writing "evo.distance/0" in OCDBT '
+                             "database: Failed to write 115488 bytes to file 19: No space left "
+                             "on device [os_error_code='28']")
+        return save(self, step, *args, **kwargs)
+
+    monkeypatch.setattr(ocp.CheckpointManager, "save", full_at_6)
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as e:
+        cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 1 and len(err) == 1, err
+    assert err[0] == (f"python -m evojax_morph.run: error: No space left on device "
+                      f"({out / 'checkpoints'}); the run can --resume from step 3 (--out {out} "
+                      "--resume)"), err
+
+
 def _snapshot(run_dir: Path) -> dict:
     return {str(f.relative_to(run_dir)): f.read_bytes()
             for f in sorted(run_dir.rglob("*")) if f.is_file()}
@@ -422,7 +489,8 @@ def test_resume_past_a_damaged_checkpoint(tmp_path, straight, capsys):
 
 def test_a_resume_refuses_a_log_or_a_checkpoint_not_its_own(tmp_path, straight, capsys):
     """Every checkpoint records its step and the body log's proof up to it (issue 81): a log
-    edited, deleted or cut short is refused with one line, exit 2, the directory as it was; a
+    edited, deleted or cut short is refused with one line, exit 2, the directory as it was, and
+    so is a metrics.csv that lacks rows up to the checkpoint (cut short, emptied, deleted); a
     checkpoint copied to another step's name is damaged (skipped, moved aside), and the resume
     goes on from the one before as an uninterrupted run does."""
     def refused(damage, says):
@@ -445,9 +513,22 @@ def test_a_resume_refuses_a_log_or_a_checkpoint_not_its_own(tmp_path, straight, 
         db.close()
 
     ours = "is not the body log checkpoint 9 was saved with (40 evaluations up to step 9; "
+    def metrics(damage):  # metrics.csv damaged, the log whole
+        def damaged(f):
+            damage(f.with_name("metrics.csv"))
+        damaged.__name__ = f"metrics_{damage.__name__}"
+        return damaged
+
+    def empty(f):
+        f.write_text("")
+
     refused(edit, ours + "it holds as many, with other values)")
     refused(Path.unlink, ours + "it holds 0)")
     refused(truncate, "bodies.sqlite does not read (DatabaseError: ")
+    rows = "metrics.csv' does not hold the rows of steps 1 to 9 whole (it holds "
+    refused(metrics(truncate), rows + "4)")  # cut in the row of step 5
+    refused(metrics(empty), rows + "0)")
+    refused(metrics(Path.unlink), "metrics.csv does not read (FileNotFoundError: ")
 
     copied = tmp_path / "copied"
     shutil.copytree(straight, copied)
@@ -459,6 +540,25 @@ def test_a_resume_refuses_a_log_or_a_checkpoint_not_its_own(tmp_path, straight, 
             "step 12 (copied or renamed?))") in printed, printed
     assert "resumed at step 9" in printed and (copied / DAMAGED / "12").is_dir()
     assert (copied / "summary.json").read_text() == (straight / "summary.json").read_text()
+
+
+def test_a_resume_rolls_back_a_body_log_write_cut_short(tmp_path, straight, capsys):
+    """A kill -9 inside a body log's write (its pages spilled to the file, the hot journal
+    beside it) leaves a log that a read-only open fails on: the resume rolls the write back,
+    as SQLite does, and ends as the uninterrupted run."""
+    out = tmp_path / "run"
+    shutil.copytree(straight, out)
+    cut = ("import os, sqlite3, sys; db = sqlite3.connect(sys.argv[1]); "
+           "db.execute('PRAGMA cache_size=1'); db.executemany('INSERT INTO bodies (step, "
+           "evolution, body, fitness, fitness_std, diverged) VALUES (99, ?, ?, 0, 0, 0)', "
+           "[(i, 'x' * 200) for i in range(3000)]); os._exit(0)")
+    subprocess.run([sys.executable, "-c", cut, str(out / "bodies.sqlite")], check=True)
+    assert (out / "bodies.sqlite-journal").exists()
+    capsys.readouterr()
+    assert cli.main(TINY + ["--out", str(out), "--resume"]) == 0
+    assert "resumed at step 9" in capsys.readouterr().out
+    assert (out / "summary.json").read_text() == (straight / "summary.json").read_text()
+    assert log_rows(out) == log_rows(straight)
 
 
 def test_no_damaged_data_file_is_restored(tmp_path, straight, capsys):
@@ -584,6 +684,30 @@ def test_body_log_of_a_run(straight):
     assert max(b["best_fitness"] for b in every) == pytest.approx(summary["best_fitness"])
     assert sum(b["evaluations"] for b in every) == 40
     assert summary["controllers"] == [] and not (straight / "best.gif").exists()
+
+
+def test_a_damaged_shape_in_the_body_log_is_named(tmp_path, straight):
+    """A body's shape in the log that does not read, or that is another body's, is an error
+    naming the body (`checkpoints.Damaged`: the run exits 2), never a traceback in the confirm
+    stage or a body confirmed that the log did not evaluate."""
+    from evojax_morph.run import bodylog
+
+    space = em.make_space("bad_walker")
+    path = tmp_path / "bodies.sqlite"
+    shutil.copy(straight / "bodies.sqlite", path)
+    names = [b["body"] for b in bodylog.best_bodies(path, 2)]
+    assert list(bodylog.shapes(path, space, names)) == names
+    db = sqlite3.connect(path)
+    db.execute("UPDATE shapes SET morphology = (SELECT morphology FROM shapes WHERE body = ?) "
+               "WHERE body = ?", names[::-1])
+    db.commit()
+    with pytest.raises(Damaged, match=r"the shape kept for body .* is another body's$"):
+        bodylog.shapes(path, space, names)
+    db.execute("UPDATE shapes SET morphology = 'garbage' WHERE body = ?", names[:1])
+    db.commit()
+    db.close()
+    with pytest.raises(Damaged, match=r"the shape of body .* does not read \(JSONDecodeError"):
+        bodylog.shapes(path, space, names)
 
 
 def _by_thread(records, done: str) -> collections.Counter:

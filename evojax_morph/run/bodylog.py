@@ -17,6 +17,8 @@ that was changed, damaged or replaced.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import hashlib
 import json
 import sqlite3
@@ -25,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from evojax_morph.morphology import Morphology
+from evojax_morph.run.checkpoints import Damaged
 from evojax_morph.spaces import Space
 
 SCHEMA = """CREATE TABLE IF NOT EXISTS bodies (
@@ -54,11 +57,14 @@ def _read(db: sqlite3.Connection, step: int):
 
 def proof(path: Path, step: int) -> dict:
     """{"rows", "sha256"} of the log in the file `path` up to `step` (`BodyLog.proof`), read
-    without changing it; a missing file holds no rows. Raises sqlite3's error where it does
-    not read (damaged, cut short)."""
+    without changing it, except that a write a kill cut short is rolled back (its hot journal,
+    PATH-journal, which SQLite rolls back on any open that may write, and a read-only open
+    fails on); a missing file holds no rows. Raises sqlite3's error where it does not read
+    (damaged, cut short)."""
     if not Path(path).exists():
         return {"rows": 0, "sha256": hashlib.sha256().hexdigest()}
-    db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    journal = Path(f"{path}-journal").exists()
+    db = sqlite3.connect(f"file:{path}?mode={'rw' if journal else 'ro'}", uri=True)
     try:
         rows, found = _read(db, step)
     finally:
@@ -66,19 +72,40 @@ def proof(path: Path, step: int) -> dict:
     return {"rows": rows, "sha256": found.hexdigest()}
 
 
+# SQLite's errors of a write the machine refused, as the OSError they are (`written`).
+WRITE_ERRORS = {sqlite3.SQLITE_READONLY: errno.EROFS, sqlite3.SQLITE_FULL: errno.ENOSPC,
+                sqlite3.SQLITE_IOERR: errno.EIO, sqlite3.SQLITE_CANTOPEN: errno.EACCES}
+
+
+@contextlib.contextmanager
+def written(path: Path):
+    """SQLite's error of a write to `path` that the machine refused (a folder made read-only,
+    a full disk, an I/O error) raised as an OSError naming `path`, as a failed write of any
+    other run file is (`python -m evojax_morph.run` says it in one line, exit 1)."""
+    try:
+        yield
+    except sqlite3.OperationalError as e:
+        code = WRITE_ERRORS.get(getattr(e, "sqlite_errorcode", 0) & 0xFF)
+        if code is None:
+            raise
+        raise OSError(code, str(e), str(path)) from e
+
+
 class BodyLog:
-    """The log of one run in the SQLite file `path` (created if missing)."""
+    """The log of one run in the SQLite file `path` (created if missing); its writes fail as
+    OSError (`written`)."""
 
     def __init__(self, path: Path, space: Space):
-        self.space = space
-        self.db = sqlite3.connect(str(path))
-        self.db.executescript(SCHEMA)
-        self.db.execute("CREATE INDEX IF NOT EXISTS by_body ON bodies (body)")
-        columns = {row[1] for row in self.db.execute("PRAGMA table_info(bodies)")}
-        for gait in ("distance", "upright"):  # a log begun before the gait was kept
-            if gait not in columns:
-                self.db.execute(f"ALTER TABLE bodies ADD COLUMN {gait} REAL")
-        self.db.commit()
+        self.space, self.path = space, Path(path)
+        with written(self.path):
+            self.db = sqlite3.connect(str(path))
+            self.db.executescript(SCHEMA)
+            self.db.execute("CREATE INDEX IF NOT EXISTS by_body ON bodies (body)")
+            columns = {row[1] for row in self.db.execute("PRAGMA table_info(bodies)")}
+            for gait in ("distance", "upright"):  # a log begun before the gait was kept
+                if gait not in columns:
+                    self.db.execute(f"ALTER TABLE bodies ADD COLUMN {gait} REAL")
+            self.db.commit()
         self._names: dict[bytes, str] = {}
         self._rows, self._hash = 0, hashlib.sha256()  # what `proof` says
 
@@ -98,14 +125,15 @@ class BodyLog:
         gait = lambda x, i: None if x is None or not np.isfinite(x[i]) else float(x[i])  # noqa: E731
         at = lambda tree, i: Morphology(*(np.asarray(x)[i] for x in (  # noqa: E731
             tree.active, tree.parent, tree.kind, tree.site, tree.attrs)))
-        rows = [
-            (step, i, self.name(at(morphs, i)), float(fitness[i]), float(fitness_std[i]),
-             int(bool(diverged[i])), None if parents is None else self.name(at(parents, i)),
-             gait(distance, i), gait(upright, i))
-            for i in range(len(fitness))
-        ]
-        self.db.executemany(f"INSERT INTO bodies ({COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                            rows)
+        with written(self.path):
+            rows = [
+                (step, i, self.name(at(morphs, i)), float(fitness[i]), float(fitness_std[i]),
+                 int(bool(diverged[i])), None if parents is None else self.name(at(parents, i)),
+                 gait(distance, i), gait(upright, i))
+                for i in range(len(fitness))
+            ]
+            self.db.executemany(
+                f"INSERT INTO bodies ({COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)", rows)
         self._rows += _digest(rows, self._hash)
 
     def proof(self) -> dict:
@@ -114,13 +142,15 @@ class BodyLog:
         return {"rows": self._rows, "sha256": self._hash.hexdigest()}
 
     def commit(self) -> None:
-        self.db.commit()
+        with written(self.path):
+            self.db.commit()
 
     def resume(self, step: int) -> None:
         """Forgets the steps after `step` (a resumed run redoes them; -1: every step) and goes
         on from the proof of those before."""
-        self.db.execute("DELETE FROM bodies WHERE step > ?", (step,))
-        self.db.commit()
+        with written(self.path):
+            self.db.execute("DELETE FROM bodies WHERE step > ?", (step,))
+            self.db.commit()
         self._rows, self._hash = _read(self.db, step)
 
     def close(self) -> None:
@@ -164,7 +194,9 @@ def best_draw(path: Path) -> dict:
 
 def shapes(path: Path, space: Space, names: list[str]) -> dict[str, Morphology]:
     """The bodies of the log named `names`, as host-side morphologies; a name the log holds no
-    shape of (a run begun before shapes were kept) is left out."""
+    shape of (a run begun before shapes were kept) is left out. Raises `checkpoints.Damaged`
+    where a shape kept does not read or is another body's (its canonical name not its key): a
+    run confirms no body its log did not evaluate."""
     db = sqlite3.connect(str(path))
     try:
         found = dict(db.execute(
@@ -175,4 +207,14 @@ def shapes(path: Path, space: Space, names: list[str]) -> dict[str, Morphology]:
         found = {}
     finally:
         db.close()
-    return {name: space.from_json(found[name]) for name in names if name in found}
+    kept = {}
+    for name in (name for name in names if name in found):
+        try:
+            kept[name] = space.from_json(found[name])
+            other = space.canonical(kept[name]) != name
+        except Exception as e:
+            raise Damaged(f"{path}: the shape of body {name} does not read "
+                          f"({type(e).__name__}: {e})") from None
+        if other:
+            raise Damaged(f"{path}: the shape kept for body {name} is another body's")
+    return kept

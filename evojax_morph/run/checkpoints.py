@@ -19,6 +19,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -60,6 +61,32 @@ def checkpoint_manager(out: Path):
     return ocp, ocp.CheckpointManager(out.resolve() / "checkpoints", options=options)
 
 
+OS_ERROR = re.compile(r"os_error_code='(\d+)'")  # how TensorStore's errors name the OS's
+
+
+@contextlib.contextmanager
+def saving(folder: Path):
+    """A checkpoint save the machine refused (a full disk, a folder made read-only), which
+    Orbax raises as TensorStore's ValueError naming the OS's error code, raised as the OSError
+    it is, naming `folder` (`python -m evojax_morph.run` says it in one line, exit 1); the logs
+    of it from Orbax's threads (a traceback each) are dropped from then on."""
+    logging.getLogger("absl").addFilter(_not_a_machine_fault)
+    try:
+        yield
+    except ValueError as e:
+        found = OS_ERROR.search(str(e))
+        if found is None:
+            raise
+        code = int(found.group(1))
+        raise OSError(code, os.strerror(code), str(folder)) from e
+
+
+def _not_a_machine_fault(record) -> bool:
+    """Whether the log `record` is not of a write the machine refused (`saving`)."""
+    e = record.exc_info[1] if record.exc_info else None
+    return not (OS_ERROR.search(record.getMessage()) or (e and OS_ERROR.search(str(e))))
+
+
 class ResumeError(RuntimeError):
     """No checkpoint of a run directory could be read back."""
 
@@ -83,10 +110,9 @@ def lock(out: Path):
         fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         f.seek(0)
-        holder = f.read().strip() or "unknown"
+        pid = f.read().strip() or "unknown"
         f.close()
-        raise Locked(f"{str(out)!r} is in use by another run (pid {holder}): wait for it to "
-                     "end, or pass another --out") from None
+        raise Locked(in_use(out, pid)) from None
     try:
         f.seek(0)
         f.truncate()
@@ -95,6 +121,27 @@ def lock(out: Path):
         yield
     finally:
         f.close()
+
+
+def in_use(out: Path, pid: str) -> str:
+    """What a run says of `out` held by the run of `pid` (`lock`, `holder`)."""
+    return (f"{str(out)!r} is in use by another run (pid {pid}): wait for it to end, or pass "
+            "another --out")
+
+
+def holder(out: Path) -> str | None:
+    """The pid of the run that holds `out` (`lock`), None where none does: asked before
+    saying that `out` holds a run to --resume, which a live run's directory does not."""
+    try:
+        f = open(out / ".lock")  # noqa: SIM115
+    except FileNotFoundError:
+        return None
+    with f:
+        try:  # shared, for a moment: taken where no run holds the exclusive lock
+            fcntl.flock(f, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return f.read().strip() or "unknown"
+    return None
 
 
 class Damaged(ValueError):

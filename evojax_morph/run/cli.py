@@ -22,6 +22,7 @@ import argparse
 import dataclasses
 import inspect
 import json
+import os
 import re
 import sys
 from pathlib import Path
@@ -119,7 +120,8 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
         parser.error(f"--resume: no run in {str(out)!r} (no config.json)")
     try:
         out.mkdir(parents=True, exist_ok=True)
-        probe = out / f".write_test{jax.process_index()}"
+        # apart for two runs starting there at once, and for the processes of one on several hosts
+        probe = out / f".write_test{jax.process_index()}-{os.getpid()}"
         probe.write_text("")
         probe.unlink()
     except OSError as e:
@@ -136,12 +138,19 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
                               and type(getattr(default, f.name)) is float)]
             if wrong:
                 raise TypeError(f"wrong type of {', '.join(wrong)}")
-        except (ValueError, TypeError) as e:  # cut short, an unknown key, space or type
+            if bad_value(cfg):  # a value no run starts with (a seed past 64 bits, -5 steps)
+                raise ValueError(bad_value(cfg))
+        except (ValueError, TypeError) as e:  # cut short, an unknown key, space, type or value
             parser.error(f"--resume: {str(saved)!r} is not a run's config.json ({e})")
         args.classifier, args.table = classifier, table  # compared resolved
         cfg = resumed(parser, cfg, args, given)
         cfg = dataclasses.replace(cfg, physics=physics(parser, cfg.physics, cfg.fitness))
     elif (out / "checkpoints").exists():
+        pid = checkpoints.holder(out)
+        if pid is not None:  # a live run: not one to --resume (yet)
+            print(f"python -m evojax_morph.run: error: {checkpoints.in_use(out, pid)}",
+                  file=sys.stderr)
+            raise SystemExit(2)
         parser.error(
             f"{str(out)!r} already holds a run: pass --resume to continue it, or another --out"
         )
@@ -356,22 +365,9 @@ def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
             make_task(args.task)
     except ValueError as e:  # an unknown name, said by its registry
         parser.error(str(e))
-    if not -(2**63) <= args.seed < 2**63:  # what a PRNG key takes
-        parser.error(f"--seed must fit in 64 bits (-2**63 to 2**63 - 1), got {args.seed}")
-    for name in POSITIVE:
-        value = getattr(args, name)  # None: the default, set by `parse`
-        if value is not None and value < (0 if name == "train_steps" else 1):
-            parser.error(f"--{name.replace('_', '-')} must be positive, got {value}")
-    if args.horizon < 0:
-        parser.error("--horizon must be >= 0")
-    problem = agents.settings_problem(args.agent, args.num_envs, args.population, args.tournament,
-                                      args.agent_params)
+    problem = bad_value(args)
     if problem:
         parser.error(problem)
-    if args.confirm < 0:
-        parser.error("--confirm must be >= 0 (0: no confirm stage)")
-    if args.confirm_controllers < 2:
-        parser.error("--confirm-controllers must be at least 2 (an interval needs 2 values)")
     kind = get_fitness(args.fitness)
     inputs = Inputs(args.space, args.task or "", args.classifier, args.table,
                     args.controllers or 0)
@@ -382,6 +378,28 @@ def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
             parser.error(str(e))
     if args.task is None:
         args.task = kind.default_task(inputs)
+
+
+def bad_value(args) -> str | None:
+    """Why the sizes and numbers of `args` (the flags, or a saved RunConfig) cannot make a run,
+    or None where they can."""
+    if not -(2**63) <= args.seed < 2**63:  # what a PRNG key takes
+        return f"--seed must fit in 64 bits (-2**63 to 2**63 - 1), got {args.seed}"
+    for name in POSITIVE:
+        value = getattr(args, name)  # None: the default, set by `parse`
+        if value is not None and value < (0 if name == "train_steps" else 1):
+            return f"--{name.replace('_', '-')} must be positive, got {value}"
+    if args.horizon < 0:
+        return "--horizon must be >= 0"
+    problem = agents.settings_problem(args.agent, args.num_envs, args.population, args.tournament,
+                                      args.agent_params)
+    if problem:
+        return problem
+    if args.confirm < 0:
+        return "--confirm must be >= 0 (0: no confirm stage)"
+    if args.confirm_controllers < 2:
+        return "--confirm-controllers must be at least 2 (an interval needs 2 values)"
+    return None
 
 
 def physics(parser: argparse.ArgumentParser, name: str, fitness: str) -> str:

@@ -15,6 +15,7 @@ import contextlib
 import csv
 import dataclasses
 import io
+import itertools
 import json
 import sys
 import time
@@ -108,6 +109,7 @@ class Run(NamedTuple):
     key_init: jax.Array
     key_greedy: jax.Array
     resumed_log: dict | None  # the body log's proof the restored checkpoint holds (None: none)
+    resumed_rows: list[dict] | None  # metrics.csv's rows up to the restored checkpoint's step
 
 
 class Evolved(NamedTuple):
@@ -135,12 +137,13 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
     ahead.collect(_evolve_jobs(run, abstract, step or 0) + confirm_jobs(run, end)
                   + report_jobs(run, best_controllers(cfg, run.p)))
     try:
-        step, state, rows, loading = _warm_up(run, step, state, ahead, clock)
-        clock.phase("build_and_m0")
-        evolved = _evolve(run, step, state, rows, ahead, clock, loading)
-        best = confirm_stage(run, evolved, ahead, clock)
-        if run.lead:
-            report_stage(run, evolved, best, clock)
+        with checkpoints.saving(out / "checkpoints"):
+            step, state, rows, loading = _warm_up(run, step, state, ahead, clock)
+            clock.phase("build_and_m0")
+            evolved = _evolve(run, step, state, rows, ahead, clock, loading)
+            best = confirm_stage(run, evolved, ahead, clock)
+            if run.lead:
+                report_stage(run, evolved, best, clock)
     except OSError:  # a full disk, a folder made read-only: the checkpoints in flight land
         with contextlib.suppress(Exception):  # first, so the run resumes from the newest
             run.manager.wait_until_finished()
@@ -171,7 +174,7 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
     on_mesh = lambda x: jax.ShapeDtypeStruct(  # noqa: E731
         x.shape, x.dtype, sharding=replicated(batch_mesh()), weak_type=x.weak_type)
     abstract = jax.tree.map(on_mesh, jax.eval_shape(p.agent.init, key_init))
-    step = state = resumed_log = None
+    step = state = resumed_log = rows = None
     if resume:
         step, restored, _ = checkpoints.restore_newest(
             out, lambda manager, step: checkpoints.restore_checked(manager, step, abstract), log
@@ -182,6 +185,7 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
         else:
             state, resumed_log = restored[0], restored[1]["log"]
             check_log(out / "bodies.sqlite", step, resumed_log)
+            rows = metrics_rows(out / "metrics.csv", step)
         if lead:  # a checkpoint reads (or there is none): the run goes on under this config
             write_config()
     _, manager = checkpoints.checkpoint_manager(out)
@@ -189,7 +193,7 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
     walk, evaluation = (None, None) if p.agent.scores is None else (
         make_greedy_walk(p), make_greedy_evaluation(p))
     run = Run(cfg, out, gif, p, lead, log, manager, bodies, walk, evaluation, key_init,
-              key_greedy, resumed_log)
+              key_greedy, resumed_log, rows)
     return run, step, state, abstract
 
 
@@ -210,6 +214,25 @@ def check_log(path: Path, step: int, saved: dict | None) -> None:
             "cannot go on from it (a log changed, damaged or of another run)")
 
 
+def metrics_rows(path: Path, step: int) -> list[dict]:
+    """The rows of steps 1 to `step` of metrics.csv `path`, which a resume from `step` keeps.
+    Raises `checkpoints.Damaged` where the file does not hold them whole (deleted, emptied,
+    cut short: a run resumed from it would end with rows missing); rows after `step` (the
+    steps the resume redoes) may be cut short."""
+    with checkpoints.read_error(str(path)), open(path, newline="") as f:
+        rows = list(itertools.islice(csv.DictReader(f), step))
+    whole = 0  # the rows of steps 1, 2, ... in order, every value there
+    for r in rows:
+        if None in r or None in r.values() or r.get("step") != str(whole + 1):
+            break
+        whole += 1
+    if whole < step:
+        raise checkpoints.Damaged(
+            f"--resume: {str(path)!r} does not hold the rows of steps 1 to {step} whole (it "
+            f"holds {whole}): the run cannot go on from it (a file changed or damaged)")
+    return rows
+
+
 def _warm_up(run: Run, step, state, ahead: Warmup, clock: Clock):
     """The run's start: the restored `state` at `step` with metrics.csv's rows up to it, or
     (`step` None) m0 evaluated in every evolution, at step 0, its lowering, compiling (or
@@ -220,8 +243,7 @@ def _warm_up(run: Run, step, state, ahead: Warmup, clock: Clock):
     if step is not None:
         ahead.start()
         loading = preload(batch_mesh().local_devices, run.p.space) if preload else None
-        with open(run.out / "metrics.csv") as f:
-            rows = [r for r in csv.DictReader(f) if int(r["step"]) <= step]
+        rows = run.resumed_rows
         if run.lead:
             run.bodies.resume(step)
         run.log(f"resumed at step {step}")
