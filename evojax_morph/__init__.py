@@ -3,8 +3,8 @@
 import evojax_morph.physics.templates  # noqa: F401  (first: it imports mjx quietly)
 from evojax_morph.agents import AskTell, ask_tell, list_agents
 from evojax_morph.fitnesses import FitnessConfig, FitnessResult, list_fitnesses, standard_ppo
-from evojax_morph.fitnesses.batched import evaluate, init_params
-from evojax_morph.mdp import EvolutionEnv, make_env
+from evojax_morph.fitnesses.batched import evaluate, init_params, make_env
+from evojax_morph.mdp import EvolutionEnv
 from evojax_morph.morphology import Morphology, format_tree, stack, unstack
 from evojax_morph.physics.determinism import (
     all_reduce_workaround,

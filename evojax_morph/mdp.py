@@ -17,10 +17,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from evojax_morph.fitnesses import FitnessConfig
-from evojax_morph.fitnesses.batched import make_fitness_fn
 from evojax_morph.morphology import Morphology, tree_select
-from evojax_morph.spaces import Space, make_space
+from evojax_morph.spaces import Space
 
 NEG = -1e9  # the score of a masked action: large and finite, never -inf
 REMEASURE = -1  # an action outside the mask: no mutation, the body evaluated again
@@ -47,8 +45,8 @@ class EvoState:
 
 @dataclasses.dataclass(frozen=True)
 class EvolutionEnv:
-    """`num_envs` parallel evolutions of `space` under a batched `fitness_fn` (`make_env`
-    builds one from a fitness config).
+    """`num_envs` parallel evolutions of `space` under a batched `fitness_fn`
+    (`fitnesses.batched.make_env` builds one from a fitness config).
 
     Attributes:
       space: the space the bodies belong to.
@@ -129,16 +127,6 @@ class EvolutionEnv:
     def auto_reset(self, state: EvoState, first: EvoState, done: jax.Array) -> EvoState:
         """Envs whose episode ended start again from `first` (m0 as `reset` evaluated it)."""
         return tree_select(done, first, state)
-
-
-def make_env(space: Space | str, fitness: FitnessConfig = FitnessConfig(), num_envs: int = 8,
-             horizon: int | None = None, mesh=None) -> EvolutionEnv:
-    """`num_envs` parallel evolutions of `space` (an instance or a registered name) under the
-    batched fitness of `fitness`, split across `mesh` (default: every device); `horizon`
-    mutations an episode (default: the space's)."""
-    space = make_space(space) if isinstance(space, str) else space
-    init_fn, fitness_fn = make_fitness_fn(space, fitness, mesh)
-    return EvolutionEnv(space, fitness_fn, init_fn, horizon or space.default_horizon, num_envs)
 
 
 def track_best(evo: EvoState, best=None):

@@ -8,9 +8,10 @@ e.g. "epsilon", "entropy", "loss"); scores(learner, obs) -> (N, A) scores whose 
 is the greedy action, or None for the baselines, which learn nothing. `ask_tell(name, env)`
 gives the same agent with the caller evaluating its children (`AskTell`).
 
-To add an agent: a module of this package with its config dataclass (defaults, and `for_run`:
-what a run's `RunOptions` make of it) and `make_policy(env, cfg) -> Policy` (how it acts and
-learns), and a line in `_REGISTRY`.
+To add an agent: a module of this package with its config dataclass (its defaults; each field
+becomes the run command's `--agent.FIELD`; optionally `for_run`, what a run's shared
+`RunOptions` make of it, and `check(num_envs)`) and `make_policy(env, cfg) -> Policy` (how it
+acts and learns), and a line in `_REGISTRY`.
 """
 
 from __future__ import annotations

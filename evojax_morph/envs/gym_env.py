@@ -14,7 +14,8 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
 from evojax_morph.fitnesses import FitnessConfig
-from evojax_morph.mdp import Observation, make_env
+from evojax_morph.fitnesses.batched import make_env
+from evojax_morph.mdp import Observation
 from evojax_morph.spaces import Space, make_space
 
 

@@ -2,7 +2,7 @@
 
 The kinds (`evojax_morph.fitnesses`, by `cfg.kind`) say what a fitness computes; this module
 splits their batch across devices, compiles them once per (space, config, mesh), and gives the
-agents' environment its pure `(init, fitness)` pair.
+agents' environment its pure `(init, fitness)` pair (`make_env`: the environment itself).
 """
 
 from __future__ import annotations
@@ -13,11 +13,12 @@ import jax
 import jax.numpy as jnp
 
 from evojax_morph.fitnesses import FitnessConfig, FitnessResult, get_fitness
+from evojax_morph.mdp import EvolutionEnv
 from evojax_morph.morphology import Morphology
 from evojax_morph.physics import engines
 from evojax_morph.ppo import Params
 from evojax_morph.sharding import batch_mesh, replicated, shard_batch
-from evojax_morph.spaces import Space
+from evojax_morph.spaces import Space, make_space
 
 
 def make_fitness_fn(space: Space, cfg: FitnessConfig, mesh=None):
@@ -32,6 +33,16 @@ def make_fitness_fn(space: Space, cfg: FitnessConfig, mesh=None):
     init, evaluate_batch = get_fitness(cfg.kind).make(space, cfg)
     split = shard_batch(evaluate_batch, mesh, manual=engines.foreign(cfg.physics))
     return (lambda key: jnp.zeros(())) if init is None else init, split
+
+
+def make_env(space: Space | str, fitness: FitnessConfig = FitnessConfig(), num_envs: int = 8,
+             horizon: int | None = None, mesh=None) -> EvolutionEnv:
+    """`num_envs` parallel evolutions of `space` (an instance or a registered name) under the
+    batched fitness of `fitness`, split across `mesh` (default: every device); `horizon`
+    mutations an episode (default: the space's)."""
+    space = make_space(space) if isinstance(space, str) else space
+    init_fn, fitness_fn = make_fitness_fn(space, fitness, mesh)
+    return EvolutionEnv(space, fitness_fn, init_fn, horizon or space.default_horizon, num_envs)
 
 
 @functools.lru_cache(maxsize=16)

@@ -18,8 +18,8 @@ import numpy as np
 from evojax_morph import agents
 from evojax_morph.agents import Agent, RunOptions
 from evojax_morph.fitnesses import FitnessConfig, Inputs, get_fitness, standard_ppo
-from evojax_morph.fitnesses.batched import make_fitness_fn
-from evojax_morph.mdp import EvolutionEnv, make_env, masked_argmax
+from evojax_morph.fitnesses.batched import make_env, make_fitness_fn
+from evojax_morph.mdp import EvolutionEnv, masked_argmax
 from evojax_morph.sharding import batch_mesh, to_host
 from evojax_morph.spaces import Space, make_space
 from evojax_morph.tasks import make_task
