@@ -233,7 +233,13 @@ class RootOnlyEnv(EvolutionEnv):
         return obs, new, jnp.where(valid, reward, jnp.nan), terminated, truncated, info
 
 
-@pytest.mark.parametrize("name", agents.list_agents())
+# Plain and bootstrapped DQN run the Double-DQN's code with one switch each (`double`, `heads`):
+# theirs is in the slow set, the default set's time being the README's (issue 79).
+SHARED_CODE = ("dqn", "bootdqn")
+
+
+@pytest.mark.parametrize("name", [pytest.param(a, marks=pytest.mark.slow) if a in SHARED_CODE
+                                  else a for a in agents.list_agents()])
 def test_every_agent_shapes_masks_and_one_trace(name):
     """Shapes, valid actions only, and one trace of the step however the bodies change.
 
@@ -292,13 +298,15 @@ def test_greedy_rollout_is_the_step_by_step_greedy_walk():
     assert len(got.actions) == env.horizon and len(got.params) == env.horizon + 1
 
 
-@pytest.mark.parametrize("name", ["regularized_evolution", "ddqn"])
+@pytest.mark.parametrize("name", ["regularized_evolution",
+                                  pytest.param("ddqn", marks=pytest.mark.slow)])
 def test_a_users_own_loop_of_ask_and_tell_is_the_agents_chunk(name):
     """`em.ask_tell` stepped by hand, each child batch evaluated by `em.evaluate` outside any
     jitted loop, against `make_agent`'s `chunk` of the same steps from the same key (its
     fitness inside one scan): the same bodies, fitness, rewards and best body, bit for bit;
     a learner's weights within float rounding (the scan fuses the step apart from the jitted
-    parts; bound as tests/test_study.py's). Double-DQN learns from its first step here."""
+    parts; bound as tests/test_study.py's). Double-DQN learns from its first step here (14 s
+    cold: in the slow set)."""
     cfg, steps = em.FitnessConfig(kind="table"), 5
     env = em.make_env("bad_walker", cfg, num_envs=4)
     settings = dict(learning_starts=4, epsilon_steps=8, hidden=16) if name == "ddqn" else {}

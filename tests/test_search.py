@@ -194,6 +194,7 @@ def test_regularized_evolution_first_population_of_walks():
     np.testing.assert_array_equal(state.evo.fitness, np.full(n, members.max()))
 
 
+@pytest.mark.slow  # 34 s cold on 2 cores: three predictor programs (issue 79)
 def test_predictor_stores_its_evaluations_and_revisits_only_when_every_child_was_seen():
     """The predictor's data set holds each step's child, its draw and its signature, in order;
     its scores rank only valid actions (masked ones at the floor). Scoring every valid
