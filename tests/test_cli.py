@@ -809,3 +809,23 @@ def test_a_failed_warmup_job_only_warns(compiles):
             ahead.wait(name)
     ahead.close()
     assert sys.getswitchinterval() == before
+
+
+def test_a_log_without_its_bodies_shapes_cannot_be_confirmed(tmp_path, capsys):
+    """A finished run resumed to confirm again (confirmed.json gone) whose log lost the shapes
+    of its best bodies stops with one line naming them (exit 2), not an IndexError in the
+    confirm stage or a confirmation of fewer bodies than asked."""
+    out = tmp_path / "run"
+    tiny = ["--space", "bad_walker", "--fitness", "table", "--num-envs", "2", "--steps", "2",
+            "--chunk", "2", "--confirm", "2", "--no-gif", "--agent", "random", "--out", str(out)]
+    assert cli.main(tiny) == 0
+    (out / "confirmed.json").unlink()
+    db = sqlite3.connect(out / "bodies.sqlite")
+    db.execute("DELETE FROM shapes")
+    db.commit()
+    db.close()
+    with pytest.raises(SystemExit) as e:
+        cli.main(tiny + ["--resume"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1, err
+    assert "no shape kept for the body log's" in err[0] and "cannot confirm it" in err[0]

@@ -186,7 +186,11 @@ def confirm_record(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print,
     path = out / "bodies.sqlite"
     ranked = bodylog.best_bodies(path, n)
     shapes = bodylog.shapes(path, p.space, [b["body"] for b in ranked])
-    ranked = [b for b in ranked if b["body"] in shapes]  # bodies of a run begun before shapes
+    missing = [b["body"] for b in ranked if b["body"] not in shapes]
+    if missing:  # every run that can reach this stage keeps each body's shape in its log
+        raise checkpoints.Damaged(f"{path}: no shape kept for the body log's "
+                                  f"{', '.join(missing)} (a damaged log): the run cannot "
+                                  "confirm it")
     also = "" if not greedy else f", with the greedy trajectory's {len(greedy)} bodies"
     log(f"confirm: the {len(ranked)} bodies of the highest mean{also}, {c} fresh evaluations "
         "each...")
