@@ -20,10 +20,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import inspect
 import json
 import os
-import re
 import sys
 from pathlib import Path
 
@@ -37,6 +35,7 @@ from evojax_morph.run import checkpoints, driver
 from evojax_morph.run.pipeline import RunConfig
 from evojax_morph.run.process import (
     Parser,
+    add_agent_settings,
     add_distributed_flags,
     start_deterministic,
     start_distributed,
@@ -297,29 +296,6 @@ def add_agent_flags(group, defaults: RunConfig) -> None:
         help="regularized_evolution, predictor: members sampled per tournament, 1 to "
         "--population "
         "(0: an eighth of the population)")
-
-
-def add_agent_settings(group, config: type) -> None:
-    """`--agent.FIELD VALUE` for each field of an agent's settings dataclass `config`, typed
-    by its default (a bool as true or false), its help the field's comment; the ones given
-    land in `agent_params`."""
-    notes = dict(re.findall(r"^\s+(\w+): [^=\n]+=[^#\n]*#\s*(.*)$", inspect.getsource(config),
-                            re.MULTILINE))
-    for f in dataclasses.fields(config):
-        kind = type(f.default)
-        if kind not in (bool, int, float, str):
-            continue
-        group.add_argument(
-            f"--agent.{f.name}", dest=f"agent.{f.name}", default=argparse.SUPPRESS,
-            type=boolean if kind is bool else kind, metavar=kind.__name__.upper(),
-            help=f"{notes.get(f.name, '')} (its default {f.default!r})".replace("%", "%%"))
-
-
-def boolean(text: str) -> bool:
-    """true or false (any case), as a flag's value."""
-    if text.lower() not in ("true", "false"):
-        raise argparse.ArgumentTypeError(f"true or false, not {text!r}")
-    return text.lower() == "true"
 
 
 def add_confirm_flags(group, defaults: RunConfig) -> None:

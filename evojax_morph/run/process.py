@@ -1,11 +1,15 @@
 """A command's process before its work: the parser class of the commands (`run`, `render`,
-`tame`), and what must be set before anything starts a JAX backend (XLA's deterministic GPU
-ops, the start of a run over several hosts)."""
+`tame`) and the flags it builds from a settings dataclass, and what must be set before
+anything starts a JAX backend (XLA's deterministic GPU ops, the start of a run over several
+hosts)."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import inspect
 import json
+import re
 from pathlib import Path
 
 from evojax_morph.fitnesses import get_fitness
@@ -22,6 +26,29 @@ class Parser(argparse.ArgumentParser):
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message}\n{self.prog}: --help lists the flags\n")
 
+
+
+def add_agent_settings(group, config: type) -> None:
+    """`--agent.FIELD VALUE` for each field of an agent's settings dataclass `config`, typed
+    by its default (a bool as true or false), its help the field's comment; the ones given
+    land in `agent_params`."""
+    notes = dict(re.findall(r"^\s+(\w+): [^=\n]+=[^#\n]*#\s*(.*)$", inspect.getsource(config),
+                            re.MULTILINE))
+    for f in dataclasses.fields(config):
+        kind = type(f.default)
+        if kind not in (bool, int, float, str):
+            continue
+        group.add_argument(
+            f"--agent.{f.name}", dest=f"agent.{f.name}", default=argparse.SUPPRESS,
+            type=boolean if kind is bool else kind, metavar=kind.__name__.upper(),
+            help=f"{notes.get(f.name, '')} (its default {f.default!r})".replace("%", "%%"))
+
+
+def boolean(text: str) -> bool:
+    """true or false (any case), as a flag's value."""
+    if text.lower() not in ("true", "false"):
+        raise argparse.ArgumentTypeError(f"true or false, not {text!r}")
+    return text.lower() == "true"
 
 
 def add_distributed_flags(parser) -> None:
