@@ -356,6 +356,17 @@ def test_a_resume_runs_to_its_saved_steps_unless_told(tmp_path, capsys):
     assert cli.parse(["--out", str(tmp_path / "new")])[0].steps == RunConfig().steps
 
 
+def stops_with_one_line(out: Path, capsys, why: str, where: Path, step: int) -> None:
+    """A run of TINY to step 9 on `out` stopped by a machine's fault: exit 1 and one line on
+    stderr, `why` at `where`, resumable from `step`."""
+    with pytest.raises(SystemExit) as e:
+        cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 1 and len(err) == 1, err
+    assert err[0] == (f"python -m evojax_morph.run: error: {why} ({where}); the run can "
+                      f"--resume from step {step} (--out {out} --resume)"), err
+
+
 def test_a_full_disk_stops_the_run_with_one_line_and_exit_1(tmp_path, capsys, monkeypatch):
     """A write that fails mid-run (here metrics.csv after step 6's chunk, the disk full) stops
     the run with exit 1 and one line: the error, the file and the step it can resume from; the
@@ -375,13 +386,7 @@ def test_a_full_disk_stops_the_run_with_one_line_and_exit_1(tmp_path, capsys, mo
 
     monkeypatch.setattr(ckpt, "write_atomic", full_after_6)
     out = tmp_path / "run"
-    with pytest.raises(SystemExit) as e:
-        cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert e.value.code == 1 and len(err) == 1, err
-    assert err[0] == (f"python -m evojax_morph.run: error: No space left on device "
-                      f"({out / 'metrics.csv'}); the run can --resume from step 6 (--out {out} "
-                      "--resume)"), err
+    stops_with_one_line(out, capsys, "No space left on device", out / "metrics.csv", 6)
 
 
 def test_a_read_only_body_log_stops_the_run_with_one_line_and_resumes(tmp_path, straight,
@@ -403,13 +408,8 @@ def test_a_read_only_body_log_stops_the_run_with_one_line_and_resumes(tmp_path, 
     out = tmp_path / "run"
     with monkeypatch.context() as m:
         m.setattr(bodylog.BodyLog, "add", read_only_after_3)
-        with pytest.raises(SystemExit) as e:
-            cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert e.value.code == 1 and len(err) == 1, err
-    assert err[0] == ("python -m evojax_morph.run: error: attempt to write a readonly database "
-                      f"({out / 'bodies.sqlite'}); the run can --resume from step 3 (--out "
-                      f"{out} --resume)"), err
+        stops_with_one_line(out, capsys, "attempt to write a readonly database",
+                            out / "bodies.sqlite", 3)
     assert cli.main(TINY + ["--out", str(out), "--resume"]) == 0
     assert "resumed at step 3" in capsys.readouterr().out
     for name in ("metrics.csv", "summary.json"):
@@ -435,13 +435,7 @@ def test_a_checkpoint_save_on_a_full_disk_stops_the_run_with_one_line(tmp_path, 
 
     monkeypatch.setattr(ocp.CheckpointManager, "save", full_at_6)
     out = tmp_path / "run"
-    with pytest.raises(SystemExit) as e:
-        cli.main(TINY + ["--steps", "9", "--seed", "3", "--out", str(out)])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert e.value.code == 1 and len(err) == 1, err
-    assert err[0] == (f"python -m evojax_morph.run: error: No space left on device "
-                      f"({out / 'checkpoints'}); the run can --resume from step 3 (--out {out} "
-                      "--resume)"), err
+    stops_with_one_line(out, capsys, "No space left on device", out / "checkpoints", 3)
 
 
 def _snapshot(run_dir: Path) -> dict:
