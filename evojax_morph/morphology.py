@@ -144,6 +144,22 @@ def signature(m: Morphology) -> jax.Array:
     return jnp.stack([_signature(m, jnp.uint32(s)) for s in SEEDS])
 
 
+def canonical(m: Morphology) -> str:
+    """A name for the shape of `m` (host-side or on a device), equal for bodies that differ only
+    in slot numbers and sibling order: its tree of (kind, site, attributes). `signature` is its
+    jittable hash."""
+    m = jax.device_get(m)
+
+    def name(node: int) -> str:
+        children = sorted(
+            name(j) for j in range(1, m.max_nodes) if m.active[j] and int(m.parent[j]) == node
+        )
+        attrs = ",".join(f"{a:.6g}" for a in np.asarray(m.attrs[node], float))
+        return f"{int(m.kind[node])}@{int(m.site[node])}[{attrs}](" + " ".join(children) + ")"
+
+    return name(0)
+
+
 def tree_select(cond: jax.Array, a, b):
     """Per batch element, `a` where `cond` else `b`, for pytrees with a leading (B,) axis."""
     return jax.tree.map(

@@ -7,10 +7,10 @@ its N a step; every run also evaluates m0 N times at its start), every child of 
 evaluated in ONE fitness call of methods x seeds x N bodies. A run's returned body is the body
 of the highest mean fitness over the run's evaluations so far (m0's at its start among them;
 ties to the body evaluated more often, then to the one seen first: `study.best_mean_bodies`),
-the first of the `run` command's ranking (`bodylog.best_bodies`; `run` then confirms its first
-8 on a GPU from scratch and reports the best of them, the study only its first): the fitness
-is noisy, and a run's best single draw is the luckiest of many. Every run's returned bodies at
-every --curve-every evaluations (and at its end) are confirmed: --confirm-controllers
+the first of the `run` command's ranking (one rule: `bodylog.best_first`; `run` then confirms
+its first 8 on a GPU from scratch and reports the best of them, the study only its first): the
+fitness is noisy, and a run's best single draw is the luckiest of many. Every run's returned
+bodies at every --curve-every evaluations (and at its end) are confirmed: --confirm-controllers
 controllers trained from scratch, with keys of their own (`confirm_keys`: the method, the seed
 and the body's index folded in, then split a controller, so no two runs share a measurement);
 the best confirmed body of the whole study again with --best-controllers, its controller of

@@ -12,7 +12,7 @@ import pytest
 import evojax_morph as em
 from evojax_morph import agents
 from evojax_morph.morphology import signature
-from evojax_morph.run import study
+from evojax_morph.run import bodylog, study
 from evojax_morph.run.pipeline import RunConfig
 from experiments import common, crawler_study
 
@@ -155,6 +155,31 @@ def test_a_run_returns_its_body_of_the_highest_mean_not_its_best_draw():
     np.testing.assert_array_equal(end["morph"].attrs, x.attrs)
     (m0_mean,) = study.best_mean_bodies({**metrics, "fitness": np.array([[[2.0, 4]]])}, 1, first)
     assert (m0_mean["draws"], m0_mean["mean"]) == (3, 4)  # m0's 3 draws, its child's among them
+
+
+def test_a_study_and_the_body_log_rank_alike(tmp_path):
+    """One rule ranks a run's bodies (`bodylog.best_first`): two bodies tied on their mean, their
+    draws and the step they were first seen go to the first by canonical name, in the body log
+    and in a study alike, whichever child made it."""
+    space = em.make_space("bad_walker")
+    m0 = space.initial()
+    x, y = (m0.replace(attrs=m0.attrs + d) for d in (0.25, 0.5))
+    first, later = sorted([x, y], key=space.canonical)
+    for pair in ([first, later], [later, first]):
+        log = bodylog.BodyLog(tmp_path / f"{len(list(tmp_path.iterdir()))}.sqlite", space)
+        log.add(0, em.stack(pair), np.ones(2), np.zeros(2), np.zeros(2, bool))
+        log.commit()
+        log.close()
+        (logged,) = em.best_bodies(log.path, 1)
+        children = em.stack([em.stack([em.stack(pair)])])  # (T=1, S=1, N=2)
+        metrics = {"signature": np.asarray(jax.vmap(jax.vmap(jax.vmap(signature)))(children)),
+                   "fitness": np.ones((1, 1, 2), np.float32), "morph": children}
+        (found,) = study.best_mean_bodies(metrics, 1)
+        assert logged["body"] == space.canonical(found["morph"]) == space.canonical(first)
+    asked = []
+    ranked = bodylog.best_first([1.0, 2.0, np.nan], [1, 1, 1], [0, 0, 0], asked.append, 3)
+    assert ranked == [1, 0, 2]
+    assert asked == []  # a name is asked only to break a tie
 
 
 def test_every_run_and_body_confirms_with_keys_of_its_own():

@@ -157,9 +157,34 @@ class BodyLog:
         self.db.close()
 
 
+def best_first(mean, draws, first_step, name, n: int) -> list[int]:
+    """The runs' rule for their best bodies, of the `run` command's log and of a study alike:
+    the indices of the `n` best of some bodies by their mean fitness over their evaluations,
+    a NaN mean last; ties go to the body evaluated more often, then to the one seen at the
+    earlier step, then to the first by its canonical name (`morphology.canonical`).
+
+    Args:
+      mean, draws, first_step: (B,) per body: its mean fitness, its evaluations, the step of
+        its first.
+      name: name(i) -> body i's canonical name; asked only of bodies tied on all else.
+    """
+    mean = np.asarray(mean, np.float64)
+    nan = np.isnan(mean)
+    keys = np.stack([nan, -np.where(nan, 0.0, mean), -np.asarray(draws, np.float64),
+                     np.asarray(first_step, np.float64)])
+    order = np.lexsort(keys[::-1])  # lexsort sorts by its last key first
+    found, i = [], 0
+    while len(found) < n and i < len(order):
+        j = i + 1
+        while j < len(order) and (keys[:, order[j]] == keys[:, order[i]]).all():
+            j += 1
+        found += sorted(order[i:j].tolist(), key=name) if j > i + 1 else [int(order[i])]
+        i = j
+    return found[:n]
+
+
 def best_bodies(path: Path, n: int = 10) -> list[dict]:
-    """The `n` best distinct bodies of a log, by their mean fitness over their evaluations; ties
-    go to the body evaluated more often, then to the one seen first. Each with how often it was
+    """The `n` best distinct bodies of a log by `best_first`'s rule. Each with how often it was
     evaluated, its mean and best fitness, the step it was first seen, and its mean distance and
     upright (None where the fitness measures no gait).
 
@@ -170,15 +195,17 @@ def best_bodies(path: Path, n: int = 10) -> list[dict]:
     try:
         rows = db.execute(
             "SELECT body, COUNT(*), AVG(fitness), MAX(fitness), MIN(step), AVG(distance), "
-            "AVG(upright) FROM bodies "
-            "GROUP BY body ORDER BY AVG(fitness) DESC, COUNT(*) DESC, MIN(step), body LIMIT ?",
-            (n,),
+            "AVG(upright) FROM bodies GROUP BY body"
         ).fetchall()
     finally:
         db.close()
     keys = ("body", "evaluations", "mean_fitness", "best_fitness", "first_step",
             "mean_distance", "mean_upright")
-    return [dict(zip(keys, r)) for r in rows]
+    if not rows:
+        return []
+    _, draws, mean, _, first_step, _, _ = zip(*rows)
+    best = best_first(mean, draws, first_step, lambda i: rows[i][0], n)
+    return [dict(zip(keys, rows[i])) for i in best]
 
 
 def best_draw(path: Path) -> dict:

@@ -29,7 +29,8 @@ import numpy as np
 from evojax_morph import agents
 from evojax_morph.agents.base import Policy, make_ask_tell
 from evojax_morph.mdp import EvolutionEnv, EvoState
-from evojax_morph.morphology import signature
+from evojax_morph.morphology import canonical, signature
+from evojax_morph.run.bodylog import best_first
 from evojax_morph.run.checkpoints import write_atomic
 from evojax_morph.run.pipeline import Pipeline, RunConfig, agent_config, build
 from evojax_morph.sharding import jit_replicated, to_host
@@ -223,10 +224,10 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
 
 def best_mean_bodies(metrics: dict, upto_steps: int,
                      first: EvoState | None = None) -> list[dict]:
-    """Each run's body of the highest mean fitness over its evaluations so far, the rule of the
-    run command's body log (`bodylog.best_bodies`): ties go to the body evaluated more often,
-    then to the one seen first. Bodies are told apart by their signature. Every draw counts at
-    the fitness it got, a diverged simulation's too (its fitness is finite, its reward zeroed:
+    """Each run's body of the highest mean fitness over its evaluations so far, by the rule of
+    the run command's body log (`bodylog.best_first`). Bodies are told apart by their
+    signature, the hash of their canonical name. Every draw counts at the fitness it got, a
+    diverged simulation's too (its fitness is finite, its reward zeroed:
     `FitnessResult.diverged`), as the log keeps it; a NaN (which the log refuses) makes its
     body's mean NaN, ranked below every other.
 
@@ -256,11 +257,12 @@ def best_mean_bodies(metrics: dict, upto_steps: int,
         which = which.reshape(-1)
         draws = np.bincount(which)
         mean = np.bincount(which, weights=fit[:, s].reshape(-1).astype(np.float64)) / draws
-        nan = np.isnan(mean)
-        # the last key sorts first: numbers before NaN, mean desc, draws desc, first seen asc
-        b = np.lexsort((seen, -draws, -np.where(nan, 0.0, mean), nan))[0]
-        at = np.unravel_index(seen[b], (sig.shape[0], sig.shape[2]))  # its first draw: step, child
-        morph = jax.tree.map(lambda x, s=s, at=at: x[at[0], s, at[1]], morphs)
-        found.append({"morph": morph, "mean": float(mean[b]), "draws": int(draws[b]),
+        step, child = np.unravel_index(seen, (sig.shape[0], sig.shape[2]))  # first draws
+
+        def body(i, s=s, step=step, child=child):
+            return jax.tree.map(lambda x: x[step[i], s, child[i]], morphs)
+
+        (b,) = best_first(mean, draws, step, lambda i, body=body: canonical(body(i)), 1)
+        found.append({"morph": body(b), "mean": float(mean[b]), "draws": int(draws[b]),
                       "signature": names[b]})
     return found

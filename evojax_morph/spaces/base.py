@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from evojax_morph.morphology import Morphology, format_tree
+from evojax_morph.morphology import Morphology, canonical, format_tree
 from evojax_morph.physics import mjcf, templates
 from evojax_morph.physics.templates import mjx
 
@@ -202,17 +202,8 @@ class Space(abc.ABC):
 
     def canonical(self, m: Morphology) -> str:
         """A name for the shape of `m`, equal for bodies that differ only in slot numbers and
-        sibling order: its tree of (kind, site, attributes)."""
-        m = jax.device_get(m)
-
-        def name(node: int) -> str:
-            children = sorted(
-                name(j) for j in range(1, m.max_nodes) if m.active[j] and int(m.parent[j]) == node
-            )
-            attrs = ",".join(f"{a:.6g}" for a in np.asarray(m.attrs[node], float))
-            return f"{int(m.kind[node])}@{int(m.site[node])}[{attrs}](" + " ".join(children) + ")"
-
-        return name(0)
+        sibling order: its tree of (kind, site, attributes) (`morphology.canonical`)."""
+        return canonical(m)
 
     def enumerate_bodies(self, max_depth: int | None = None) -> tuple[list[Morphology], list[int]]:
         """Every distinct body (by `canonical`) within `max_depth` mutations of m0, breadth first.
