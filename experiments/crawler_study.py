@@ -7,7 +7,7 @@ its N a step; every run also evaluates m0 N times at its start), every child of 
 evaluated in ONE fitness call of methods x seeds x N bodies. A run's returned body is the body
 of the highest mean fitness over the run's evaluations so far (m0's at its start among them;
 ties to the body evaluated more often, then to the one seen first: `study.best_mean_bodies`),
-the first of the `run` command's ranking (one rule: `bodylog.best_first`; `run` then confirms
+the first of the `run` command's ranking (one rule: `bodylog.ranked`; `run` then confirms
 its first 8 on a GPU from scratch and reports the best of them, the study only its first): the
 fitness is noisy, and a run's best single draw is the luckiest of many. Every run's returned
 bodies at every --curve-every evaluations (and at its end) are confirmed: --confirm-controllers

@@ -158,7 +158,7 @@ def test_a_run_returns_its_body_of_the_highest_mean_not_its_best_draw():
 
 
 def test_a_study_and_the_body_log_rank_alike(tmp_path):
-    """One rule ranks a run's bodies (`bodylog.best_first`): two bodies tied on their mean, their
+    """One rule ranks a run's bodies (`bodylog.ranked`): two bodies tied on their mean, their
     draws and the step they were first seen go to the first by canonical name, in the body log
     and in a study alike, whichever child made it."""
     space = em.make_space("bad_walker")
@@ -177,7 +177,7 @@ def test_a_study_and_the_body_log_rank_alike(tmp_path):
         (found,) = study.best_mean_bodies(metrics, 1)
         assert logged["body"] == space.canonical(found["morph"]) == space.canonical(first)
     asked = []
-    ranked = bodylog.best_first([1.0, 2.0, np.nan], [1, 1, 1], [0, 0, 0], asked.append, 3)
+    ranked = bodylog.ranked([1.0, 2.0, np.nan], [1, 1, 1], [0, 0, 0], asked.append, 3)
     assert ranked == [1, 0, 2]
     assert asked == []  # a name is asked only to break a tie
 

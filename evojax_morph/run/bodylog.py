@@ -157,7 +157,7 @@ class BodyLog:
         self.db.close()
 
 
-def best_first(mean, draws, first_step, name, n: int) -> list[int]:
+def ranked(mean, draws, first_step, name, n: int) -> list[int]:
     """The runs' rule for their best bodies, of the `run` command's log and of a study alike:
     the indices of the `n` best of some bodies by their mean fitness over their evaluations,
     a NaN mean last; ties go to the body evaluated more often, then to the one seen at the
@@ -184,7 +184,7 @@ def best_first(mean, draws, first_step, name, n: int) -> list[int]:
 
 
 def best_bodies(path: Path, n: int = 10) -> list[dict]:
-    """The `n` best distinct bodies of a log by `best_first`'s rule. Each with how often it was
+    """The `n` best distinct bodies of a log by `ranked`'s rule. Each with how often it was
     evaluated, its mean and best fitness, the step it was first seen, and its mean distance and
     upright (None where the fitness measures no gait).
 
@@ -204,7 +204,7 @@ def best_bodies(path: Path, n: int = 10) -> list[dict]:
     if not rows:
         return []
     _, draws, mean, _, first_step, _, _ = zip(*rows)
-    best = best_first(mean, draws, first_step, lambda i: rows[i][0], n)
+    best = ranked(mean, draws, first_step, lambda i: rows[i][0], n)
     return [dict(zip(keys, rows[i])) for i in best]
 
 

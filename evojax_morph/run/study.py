@@ -30,7 +30,7 @@ from evojax_morph import agents
 from evojax_morph.agents.base import Policy, make_ask_tell
 from evojax_morph.mdp import EvolutionEnv, EvoState
 from evojax_morph.morphology import canonical, signature
-from evojax_morph.run.bodylog import best_first
+from evojax_morph.run.bodylog import ranked
 from evojax_morph.run.checkpoints import write_atomic
 from evojax_morph.run.pipeline import Pipeline, RunConfig, agent_config, build
 from evojax_morph.sharding import jit_replicated, to_host
@@ -225,7 +225,7 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
 def best_mean_bodies(metrics: dict, upto_steps: int,
                      first: EvoState | None = None) -> list[dict]:
     """Each run's body of the highest mean fitness over its evaluations so far, by the rule of
-    the run command's body log (`bodylog.best_first`). Bodies are told apart by their
+    the run command's body log (`bodylog.ranked`). Bodies are told apart by their
     signature, the hash of their canonical name. Every draw counts at the fitness it got, a
     diverged simulation's too (its fitness is finite, its reward zeroed:
     `FitnessResult.diverged`), as the log keeps it; a NaN (which the log refuses) makes its
@@ -262,7 +262,7 @@ def best_mean_bodies(metrics: dict, upto_steps: int,
         def body(i, s=s, step=step, child=child):
             return jax.tree.map(lambda x: x[step[i], s, child[i]], morphs)
 
-        (b,) = best_first(mean, draws, step, lambda i, body=body: canonical(body(i)), 1)
+        (b,) = ranked(mean, draws, step, lambda i, body=body: canonical(body(i)), 1)
         found.append({"morph": body(b), "mean": float(mean[b]), "draws": int(draws[b]),
                       "signature": names[b]})
     return found
