@@ -105,10 +105,9 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
     parser = make_parser(defaults, known.agent, known.fitness)
     args = parser.parse_args(argv)
     given = given_flags(make_parser(defaults, known.agent, known.fitness), argv)
-    for kind in ("agent", "fitness"):
-        setattr(args, f"{kind}_params", given_settings(args, kind))
-        if getattr(args, f"{kind}_params"):
-            given.add(f"{kind}_params")
+    args.agent_params = given_settings(args, "agent")
+    args.fitness_params = given_settings(args, "fitness")
+    given |= {name for name in ("agent_params", "fitness_params") if getattr(args, name)}
     check(parser, args)
     if not args.resume:
         args.physics = physics(parser, args.physics, args.fitness)
