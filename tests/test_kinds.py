@@ -143,3 +143,70 @@ def test_a_new_agent_with_a_setting_runs_from_the_command_line(tmp_path, monkeyp
     got = agent_config(RunConfig(fitness="table", agent="regularized_evolution", num_envs=4,
                                  agent_params={"population": 64}), p.env)
     assert (got.population, got.tournament) == (64, 8)
+
+
+@dataclasses.dataclass(frozen=True)
+class LevelParams:
+    level: float = 1.0  # the fitness of every body
+
+    def __post_init__(self):
+        if self.level <= 0:
+            raise ValueError(f"a level above 0, not {self.level}")
+
+
+def make_level(space, cfg):
+    """A toy fitness: every body scores `cfg.params.level`."""
+    from evojax_morph.fitnesses.base import untrained_result
+
+    def evaluate(keys, morphs, params):
+        fitness = jnp.full(morphs.active.shape[:1], cfg.params.level, jnp.float32)
+        return untrained_result(fitness, jnp.zeros_like(fitness, bool), params, env_steps=0)
+
+    return None, evaluate
+
+
+def test_a_new_fitness_with_a_setting_runs_from_the_command_line(tmp_path, monkeypatch, capsys):
+    """A fitness kind registered with a params dataclass and nothing else gets `--fitness.FIELD`
+    flags (typed, with its comment as help), its run records the setting in config.json and
+    its make reads it; a value its __post_init__ refuses and a --resume that would change it
+    exit 2 before anything is made; a kind without settings takes none, and its config writes
+    none."""
+    from evojax_morph.fitnesses import FitnessConfig, base
+    from evojax_morph.run import cli
+    from evojax_morph.run.pipeline import RunConfig
+
+    kind = base.Fitness("level", validate=lambda cfg: None, scale=lambda space: 1.0,
+                        make=make_level, deterministic=True, engines=(), params=LevelParams)
+    monkeypatch.setitem(base._REGISTRY, "level", kind)
+    with pytest.raises(SystemExit):
+        cli.main(["--fitness", "level", "--help"])
+    assert "--fitness.level FLOAT the fitness of every body (its default 1.0)" in (
+        " ".join(capsys.readouterr().out.split()))
+    tiny = ["--space", "bad_walker", "--agent", "random", "--num-envs", "2", "--steps", "2",
+            "--chunk", "2", "--no-gif", "--fitness", "level"]
+    out = tmp_path / "run"
+    assert cli.main(tiny + ["--fitness.level", "2.5", "--out", str(out)]) == 0
+    assert json.loads((out / "config.json").read_text())["fitness_params"] == {"level": 2.5}
+    rows = list(csv.DictReader((out / "metrics.csv").open()))
+    assert [float(r["fitness_mean"]) for r in rows] == [2.5, 2.5]
+    for bad, why in ((["--fitness.level", "-1"], "--fitness.*: a level above 0, not -1.0"),
+                     (["--fitness.level", "high"], "invalid float value: 'high'"),
+                     (["--fitness", "predefined", "--fitness.level", "2"],
+                      "unrecognized arguments: --fitness.level 2")):
+        with pytest.raises(SystemExit) as e:
+            cli.main(tiny + bad + ["--out", str(tmp_path / "bad")])
+        assert e.value.code == 2 and why in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
+    with pytest.raises(SystemExit) as e:
+        cli.main(tiny + ["--fitness.level", "3", "--out", str(out), "--resume"])
+    assert e.value.code == 2
+    assert "--fitness.* {'level': 3.0} would make another run" in capsys.readouterr().err
+
+    cfg = FitnessConfig(kind="level", params=LevelParams(4.0))
+    assert FitnessConfig.from_dict(cfg.to_dict()) == cfg and hash(cfg) == hash(
+        FitnessConfig.from_dict(cfg.to_dict()))
+    assert FitnessConfig(kind="level").params == LevelParams()
+    assert "params" not in FitnessConfig().to_dict()
+    assert "fitness_params" not in RunConfig(fitness="level").to_dict()
+    with pytest.raises(ValueError, match="the ppo fitness's settings are none"):
+        FitnessConfig(params=LevelParams())

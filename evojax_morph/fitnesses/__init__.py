@@ -3,7 +3,8 @@
 To add a kind: write a module of this package defining its `make(space, cfg) -> (init,
 evaluate)`, its settings check and its typical scale as a `Fitness`, with its rules (the
 engines it steps on, its default task, its check of the files it reads), and list it below. Its
-own settings go in `FitnessConfig` (base.py) when it has any.
+own settings, if any, are a frozen dataclass with defaults, its `Fitness.params`: `make` reads
+them from `cfg.params`, and each field becomes the run command's `--fitness.FIELD`.
 """
 
 from evojax_morph.fitnesses import ppo, predefined, table, tame
@@ -12,6 +13,7 @@ from evojax_morph.fitnesses.base import (
     FitnessConfig,
     FitnessResult,
     Inputs,
+    fitness_params,
     get_fitness,
     list_fitnesses,
     register,
@@ -21,5 +23,5 @@ from evojax_morph.fitnesses.ppo import standard_ppo
 
 register(ppo.FITNESS, predefined.FITNESS, tame.FITNESS, table.FITNESS)
 
-__all__ = ["Fitness", "FitnessConfig", "FitnessResult", "Inputs", "get_fitness", "list_fitnesses",
-           "register", "resolve_physics", "standard_ppo"]
+__all__ = ["Fitness", "FitnessConfig", "FitnessResult", "Inputs", "fitness_params", "get_fitness",
+           "list_fitnesses", "register", "resolve_physics", "standard_ppo"]

@@ -38,6 +38,8 @@ class FitnessConfig:
         "" for the space's packaged table (`evojax_morph/fitnesses/tables/SPACE.npz`).
       classes: for "ppo", train each body on the smallest of the space's size classes that holds
         it (`evojax_morph.physics.classes`; spaces without classes ignore it).
+      params: the kind's own settings, an instance of its `Fitness.params` (None: its defaults,
+        or nothing for a kind without settings); the CLI's `--fitness.FIELD`.
     """
 
     kind: str = "ppo"
@@ -47,6 +49,7 @@ class FitnessConfig:
     physics: str = "jax"
     table: str = ""
     classes: bool = False
+    params: Any = None
 
     def __post_init__(self):
         if self.physics not in list_engines():
@@ -56,6 +59,13 @@ class FitnessConfig:
         kind = get_fitness(self.kind)
         if kind.engines and self.physics not in kind.engines:
             raise ValueError(f"{_bound(kind)}, not {self.physics!r}")
+        if self.params is None and kind.params is not None:
+            object.__setattr__(self, "params", kind.params())
+        if not (self.params is None if kind.params is None
+                else isinstance(self.params, kind.params)):
+            raise ValueError(f"the {kind.name} fitness's settings are "
+                             f"{'none' if kind.params is None else kind.params.__name__}, "
+                             f"not {self.params!r}")
         kind.validate(self)
 
     def with_controllers(self, k: int) -> FitnessConfig:
@@ -63,15 +73,19 @@ class FitnessConfig:
         return dataclasses.replace(self, ppo=dataclasses.replace(self.ppo, controllers=k))
 
     def to_dict(self) -> dict:
-        """JSON-ready settings; `from_dict` rebuilds the same config."""
-        return dataclasses.asdict(self)
+        """JSON-ready settings, `params` only for a kind with settings; `from_dict` rebuilds
+        the same config."""
+        d = dataclasses.asdict(self)
+        return d if self.params is not None else {k: v for k, v in d.items() if k != "params"}
 
     @classmethod
     def from_dict(cls, d: dict) -> FitnessConfig:
         tuples = lambda c: {k: tuple(v) if isinstance(v, list) else v for k, v in c.items()}
+        own = d.get("params")
         return cls(kind=d["kind"], task=TaskConfig(**d["task"]), ppo=PPOConfig(**tuples(d["ppo"])),
                    classifier=d["classifier"], physics=d.get("physics", "jax"),
-                   table=d.get("table", ""), classes=d.get("classes", False))
+                   table=d.get("table", ""), classes=d.get("classes", False),
+                   params=None if own is None else get_fitness(d["kind"]).params(**tuples(own)))
 
 
 @struct.dataclass
@@ -148,6 +162,11 @@ class Fitness(NamedTuple):
       2).
     check_bodies(space, cfg, morphs): raises ValueError naming a body of the batch the kind
       cannot evaluate; `em.evaluate` asks before its call (the table's bodies outside it).
+    params: the kind's own settings, a frozen dataclass with a default for every field (None:
+      it has none); `make` reads them from `cfg.params`. The run command makes each field of
+      type bool, int, float or str a flag `--fitness.FIELD VALUE`, its help the field's
+      comment; its `__post_init__` raises ValueError where the values cannot run (the
+      command's exit 2).
     """
 
     name: str
@@ -160,6 +179,25 @@ class Fitness(NamedTuple):
     default_task: Callable[[Inputs], str] = lambda inputs: "walk"
     check: Callable[[Inputs], None] = lambda inputs: None
     check_bodies: Callable[[Space, FitnessConfig, Any], None] = lambda space, cfg, morphs: None
+    params: type | None = None
+
+
+def fitness_params(kind: str, given: dict) -> Any:
+    """The settings of fitness `kind` with the fields `given` set over its defaults (None for
+    a kind without settings, given none).
+
+    Raises:
+      ValueError: a field it does not have, or a value its `__post_init__` refuses.
+    """
+    own = get_fitness(kind).params
+    if own is None:
+        if given:
+            raise ValueError(f"the {kind} fitness has no settings")
+        return None
+    unknown = set(given) - {f.name for f in dataclasses.fields(own)}
+    if unknown:
+        raise ValueError(f"the {kind} fitness has no setting {', '.join(sorted(unknown))}")
+    return own(**given)
 
 
 def _bound(kind: Fitness) -> str:

@@ -28,7 +28,13 @@ from pathlib import Path
 import jax
 
 from evojax_morph import agents
-from evojax_morph.fitnesses import Inputs, get_fitness, list_fitnesses, resolve_physics
+from evojax_morph.fitnesses import (
+    Inputs,
+    fitness_params,
+    get_fitness,
+    list_fitnesses,
+    resolve_physics,
+)
 from evojax_morph.physics.determinism import full_precision, persistent_cache
 from evojax_morph.physics.engines import AUTO, list_engines, registered
 from evojax_morph.run import checkpoints, driver
@@ -37,6 +43,8 @@ from evojax_morph.run.process import (
     Parser,
     add_agent_settings,
     add_distributed_flags,
+    add_fitness_settings,
+    given_settings,
     start_deterministic,
     start_distributed,
 )
@@ -69,8 +77,9 @@ def resumed(parser, cfg: RunConfig, args, given: set[str]) -> RunConfig:
     said in one line; exit 2 where a flag given would change another setting."""
     new = {f.name: getattr(args, f.name) for f in dataclasses.fields(RunConfig)
            if f.name in given and getattr(args, f.name) != getattr(cfg, f.name)}
-    flag = lambda name: "--agent.*" if name == "agent_params" else (  # noqa: E731
-        "--" + name.replace("_", "-"))
+    flag = lambda name: (  # noqa: E731
+        f"--{name.removesuffix('_params')}.*" if name.endswith("_params")
+        else "--" + name.replace("_", "-"))
     fixed = [name for name in new if name not in RESUME_MAY_CHANGE]
     if fixed:
         name = fixed[0]
@@ -90,15 +99,15 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--space", default=RunConfig().space)
     pre.add_argument("--agent", default=RunConfig().agent)
+    pre.add_argument("--fitness", default=RunConfig().fitness)
     known = pre.parse_known_args(argv)[0]
     defaults = RunConfig(**gpu_defaults(known.space)) if gpu else RunConfig()
-    parser = make_parser(defaults, known.agent)
+    parser = make_parser(defaults, known.agent, known.fitness)
     args = parser.parse_args(argv)
-    given = given_flags(make_parser(defaults, known.agent), argv)
-    args.agent_params = {k.removeprefix("agent."): v for k, v in vars(args).items()
-                         if k.startswith("agent.")}
-    if args.agent_params:
-        given.add("agent_params")
+    given = given_flags(make_parser(defaults, known.agent, known.fitness), argv)
+    args.agent_params = given_settings(args, "agent")
+    args.fitness_params = given_settings(args, "fitness")
+    given |= {name for name in ("agent_params", "fitness_params") if getattr(args, name)}
     check(parser, args)
     if not args.resume:
         args.physics = physics(parser, args.physics, args.fitness)
@@ -156,9 +165,10 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
     return cfg, out, args.resume, not args.no_gif
 
 
-def make_parser(defaults: RunConfig, agent: str = "") -> argparse.ArgumentParser:
+def make_parser(defaults: RunConfig, agent: str = "", fitness: str = "") -> argparse.ArgumentParser:
     """The run's flags in groups, their defaults `defaults`' (a RunConfig, GPU defaults
-    applied), with `--agent.FIELD` for each of `agent`'s settings (`add_agent_settings`)."""
+    applied), with `--agent.FIELD` for each of `agent`'s settings and `--fitness.FIELD` for
+    each of the fitness kind `fitness`'s (`process.add_settings`)."""
     parser = Parser(
         prog="python -m evojax_morph.run",
         description=__doc__,
@@ -166,11 +176,9 @@ def make_parser(defaults: RunConfig, agent: str = "") -> argparse.ArgumentParser
     )
     add_run_flags(parser.add_argument_group("run"), defaults)
     add_fitness_flags(parser.add_argument_group("fitness"), defaults)
+    add_fitness_settings(parser, fitness)
     add_agent_flags(parser.add_argument_group("agent"), defaults)
-    if agent in agents.list_agents() and agents.get_agent(agent).config is not None:
-        add_agent_settings(parser.add_argument_group(
-            f"{agent}'s own settings (--agent.FIELD: any field of its config, over what the "
-            "flags above make of it)"), agents.get_agent(agent).config)
+    add_agent_settings(parser, agent)
     add_confirm_flags(parser.add_argument_group("confirm"), defaults)
     output = parser.add_argument_group("output and devices")
     output.add_argument(
@@ -371,6 +379,10 @@ def bad_value(args) -> str | None:
                                       args.agent_params)
     if problem:
         return problem
+    try:
+        fitness_params(args.fitness, args.fitness_params)
+    except (ValueError, TypeError) as e:
+        return f"--fitness.*: {e}"
     if args.confirm < 0:
         return "--confirm must be >= 0 (0: no confirm stage)"
     if args.confirm_controllers < 2:

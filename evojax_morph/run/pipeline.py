@@ -17,7 +17,13 @@ import numpy as np
 
 from evojax_morph import agents
 from evojax_morph.agents import Agent, RunOptions
-from evojax_morph.fitnesses import FitnessConfig, Inputs, get_fitness, standard_ppo
+from evojax_morph.fitnesses import (
+    FitnessConfig,
+    Inputs,
+    fitness_params,
+    get_fitness,
+    standard_ppo,
+)
 from evojax_morph.fitnesses.batched import make_env, make_fitness_fn
 from evojax_morph.mdp import EvolutionEnv, masked_argmax
 from evojax_morph.sharding import batch_mesh, to_host
@@ -54,6 +60,14 @@ class RunConfig:
     confirm_controllers: int = 4  # fresh evaluations per confirmed body (and greedy body with them)
     agent_params: dict = dataclasses.field(default_factory=dict)  # fields of the agent's config
     # set over what the flags above make of it (`--agent.FIELD`)
+    fitness_params: dict = dataclasses.field(default_factory=dict)  # fields of the fitness
+    # kind's settings set over their defaults (`Fitness.params`, `--fitness.FIELD`)
+
+    def to_dict(self) -> dict:
+        """config.json's contents: every field, `fitness_params` only where some are set (a
+        run of a kind without settings writes none)."""
+        d = dataclasses.asdict(self)
+        return d if self.fitness_params else {k: v for k, v in d.items() if k != "fitness_params"}
 
 
 def agent_config(cfg: RunConfig, env: EvolutionEnv) -> Any:
@@ -98,7 +112,8 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     fit_cfg = FitnessConfig(kind=cfg.fitness, task=make_task(task),
                             ppo=standard_ppo(cfg.train_steps, cfg.controllers),
                             classifier=cfg.classifier, physics=cfg.physics, table=cfg.table,
-                            classes=cfg.classes)
+                            classes=cfg.classes,
+                            params=fitness_params(cfg.fitness, cfg.fitness_params))
     env = make_env(space, fit_cfg, cfg.num_envs, cfg.horizon, mesh)
     agent_cfg = agent_config(cfg, env) if agent_cfg is None else agent_cfg
     agent = agents.make_agent(cfg.agent, env, agent_cfg, mesh)

@@ -12,7 +12,8 @@ import json
 import re
 from pathlib import Path
 
-from evojax_morph.fitnesses import get_fitness
+from evojax_morph import agents
+from evojax_morph.fitnesses import get_fitness, list_fitnesses
 from evojax_morph.physics.determinism import deterministic_gpu
 from evojax_morph.physics.engines import AUTO, may_take, registered
 from evojax_morph.run.pipeline import RunConfig
@@ -28,10 +29,10 @@ class Parser(argparse.ArgumentParser):
 
 
 
-def add_agent_settings(group, config: type) -> None:
-    """`--agent.FIELD VALUE` for each field of an agent's settings dataclass `config`, typed
-    by its default (a bool as true or false), its help the field's comment; the ones given
-    land in `agent_params`."""
+def add_settings(group, prefix: str, config: type) -> None:
+    """`--PREFIX.FIELD VALUE` for each field of a kind's settings dataclass `config` (an
+    agent's config, a fitness kind's params), typed by its default (a bool as true or false),
+    its help the field's comment; `given_settings` collects the ones given."""
     notes = dict(re.findall(r"^\s+(\w+): [^=\n]+=[^#\n]*#\s*(.*)$", inspect.getsource(config),
                             re.MULTILINE))
     for f in dataclasses.fields(config):
@@ -39,9 +40,33 @@ def add_agent_settings(group, config: type) -> None:
         if kind not in (bool, int, float, str):
             continue
         group.add_argument(
-            f"--agent.{f.name}", dest=f"agent.{f.name}", default=argparse.SUPPRESS,
+            f"--{prefix}.{f.name}", dest=f"{prefix}.{f.name}", default=argparse.SUPPRESS,
             type=boolean if kind is bool else kind, metavar=kind.__name__.upper(),
             help=f"{notes.get(f.name, '')} (its default {f.default!r})".replace("%", "%%"))
+
+
+def add_agent_settings(parser, agent: str) -> None:
+    """A group of `--agent.FIELD` flags on `parser` for the registered agent `agent`'s
+    config, if it has one (`add_settings`)."""
+    if agent in agents.list_agents() and agents.get_agent(agent).config is not None:
+        add_settings(parser.add_argument_group(
+            f"{agent}'s own settings (--agent.FIELD: any field of its config, over what the "
+            "flags above make of it)"), "agent", agents.get_agent(agent).config)
+
+
+def add_fitness_settings(parser, fitness: str) -> None:
+    """A group of `--fitness.FIELD` flags on `parser` for the registered fitness kind
+    `fitness`'s params, if it has any (`add_settings`)."""
+    if fitness in list_fitnesses() and get_fitness(fitness).params is not None:
+        add_settings(parser.add_argument_group(
+            f"the {fitness} fitness's own settings (--fitness.FIELD: any field of its params)"),
+            "fitness", get_fitness(fitness).params)
+
+
+def given_settings(args: argparse.Namespace, prefix: str) -> dict:
+    """The `--PREFIX.FIELD` flags of `args` (`add_settings`) given, as {FIELD: value}."""
+    return {k.removeprefix(prefix + "."): v for k, v in vars(args).items()
+            if k.startswith(prefix + ".")}
 
 
 def boolean(text: str) -> bool:
