@@ -170,10 +170,9 @@ def test_a_new_fitness_with_a_setting_runs_from_the_command_line(tmp_path, monke
     flags (typed, with its comment as help), its run records the setting in config.json and
     its make reads it; a value its __post_init__ refuses and a --resume that would change it
     exit 2 before anything is made; a kind without settings takes none, and its config writes
-    none."""
+    none (saved controllers' metadata as before)."""
     from evojax_morph.fitnesses import FitnessConfig, base
     from evojax_morph.run import cli
-    from evojax_morph.run.pipeline import RunConfig
 
     kind = base.Fitness("level", validate=lambda cfg: None, scale=lambda space: 1.0,
                         make=make_level, deterministic=True, engines=(), params=LevelParams)
@@ -207,6 +206,5 @@ def test_a_new_fitness_with_a_setting_runs_from_the_command_line(tmp_path, monke
         FitnessConfig.from_dict(cfg.to_dict()))
     assert FitnessConfig(kind="level").params == LevelParams()
     assert "params" not in FitnessConfig().to_dict()
-    assert "fitness_params" not in RunConfig(fitness="level").to_dict()
     with pytest.raises(ValueError, match="the ppo fitness's settings are none"):
         FitnessConfig(params=LevelParams())

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import io
 import itertools
 import json
@@ -155,7 +156,7 @@ def _build(cfg: RunConfig, out: Path, resume: bool, gif: bool):
     shapes and placement (what the later programs are compiled for)."""
     lead = jax.process_index() == 0
     write_config = lambda: checkpoints.write_atomic(  # noqa: E731
-        out / "config.json", json.dumps(cfg.to_dict(), indent=1))
+        out / "config.json", json.dumps(dataclasses.asdict(cfg), indent=1))
     if lead and not resume:
         write_config()
     p = build(cfg)

@@ -63,12 +63,6 @@ class RunConfig:
     fitness_params: dict = dataclasses.field(default_factory=dict)  # fields of the fitness
     # kind's settings set over their defaults (`Fitness.params`, `--fitness.FIELD`)
 
-    def to_dict(self) -> dict:
-        """config.json's contents: every field, `fitness_params` only where some are set (a
-        run of a kind without settings writes none)."""
-        d = dataclasses.asdict(self)
-        return d if self.fitness_params else {k: v for k, v in d.items() if k != "fitness_params"}
-
 
 def agent_config(cfg: RunConfig, env: EvolutionEnv) -> Any:
     """The config of the run's agent that its settings give it (None for an agent without
