@@ -19,10 +19,10 @@ from its parent's controller (policy inheritance).
 The pieces, one factory each in `evojax_morph.ppo.train`, as purejaxrl's scans nest: `make_train`
 (K controllers per body) > `make_train_learners` (the update scan) > `make_collect` (COLLECT
 TRAJECTORIES, the env-step scan) and `make_learn` (GAE, then epochs > minibatches of
-`make_loss`); then `make_evaluate_learners` scores the trained controllers. Their calls run in
-named scopes ("reset", "collect", "learn", "evaluate"), to which xprof's trace viewer attributes
-the device's time (`python -m experiments.bench_fitness --trace DIR`); they change no
-computation.
+`make_loss`); then `make_evaluate_learners` scores the trained controllers in episodes of
+`tasks.rollout`. Their calls run in named scopes ("reset", "collect", "learn", "evaluate"), to
+which xprof's trace viewer attributes the device's time (`python -m experiments.bench_fitness
+--trace DIR`); they change no computation.
 """
 
 from evojax_morph.ppo.networks import (

@@ -25,7 +25,7 @@ from evojax_morph.ppo.networks import (
     masked_log_prob,
 )
 from evojax_morph.spaces import Space
-from evojax_morph.tasks import EnvState, Locomotion, TaskConfig
+from evojax_morph.tasks import EnvState, Locomotion, TaskConfig, rollout
 
 
 class Rollout(NamedTuple):
@@ -311,15 +311,11 @@ def make_evaluate_learners(space: Space, env: Locomotion, engine: Engine, cfg: P
 
     def evaluate(keys: jax.Array, models, params: Params) -> Episodes:
         learners = keys.shape[0]
-        worlds, world_bodies, state = reset_learners(space, env, engine, keys, models, episodes)
+        worlds, world_bodies, first = reset_learners(space, env, engine, keys, models, episodes)
         by_learner = lambda x: x.reshape((learners, episodes) + x.shape[1:])
 
-        def body(carry, _):
-            state, out, alive = carry
-            action = policy(params, by_learner(state.obs))
-            state = env.step_worlds(
-                engine, worlds, world_bodies, state, action.reshape(-1, env.action_size)
-            )
+        def observe(carry, state):  # what each world's episode adds up, until it ends
+            out, alive = carry
             on = lambda x: jnp.where(alive, by_learner(x), 0.0)
             up = alive & ~by_learner(state.terminated)  # upright after this step
             out = Episodes(
@@ -328,13 +324,18 @@ def make_evaluate_learners(space: Space, env: Locomotion, engine: Engine, cfg: P
                 distance=out.distance + on(state.forward),
                 upright=out.upright + up,
             )
-            return (state, out, alive & ~by_learner(state.done)), None
+            return (out, alive & ~by_learner(state.done)), None
 
-        zeros = jnp.zeros((learners, episodes), state.reward.dtype)
+        zeros = jnp.zeros((learners, episodes), first.reward.dtype)
         alive = jnp.ones((learners, episodes), bool)
         length = env.cfg.episode_length
-        (_, out, _), _ = jax.lax.scan(
-            body, (state, Episodes(zeros, ~alive, zeros, zeros), alive), length=length
+        _, (out, _), _ = rollout(
+            lambda state, action: env.step_worlds(engine, worlds, world_bodies, state, action),
+            lambda state, _: policy(params, by_learner(state.obs)).reshape(-1, env.action_size),
+            first,
+            length,
+            observe,
+            (Episodes(zeros, ~alive, zeros, zeros), alive),
         )
         return out._replace(upright=out.upright / length)
 
