@@ -4,6 +4,7 @@ The model is an argument of `reset` and `step`, never state on the task, so one 
 serves every morphology of a space and a batch of models vmaps through it. `reset_worlds` and
 `step_worlds` do the same for a flat batch of worlds of different bodies on any physics engine
 (`evojax_morph.physics.engines`), as the PPO fitness steps them; both paths share the task's code.
+`rollout` steps either through an episode under a policy.
 """
 
 from __future__ import annotations
@@ -303,3 +304,39 @@ class Locomotion:
             diverged=diverged,
             forward=jnp.where(diverged | ~jnp.isfinite(forward), 0.0, forward),
         )
+
+
+def rollout(step_fn, act_fn, first: EnvState, length: int, observe_fn, acc=None):
+    """One episode of worlds under a policy: `length` control steps in one `lax.scan`.
+
+    Every episode loop of the package is this one: PPO's evaluation episodes (a flat batch of
+    worlds, `Locomotion.step_worlds`), a saved controller's replay and TAME's open-loop rollouts
+    (one body's world, `Locomotion.step`).
+
+    Args:
+      step_fn: `step_fn(state, action) -> state`, one control step of the worlds.
+      act_fn: `act_fn(state, t) -> action`, the policy; `t` the control step, a float32 ()
+        counting from 0.
+      first: the worlds' state after their reset: one world's (`Locomotion.reset`, fields ()) or
+        a flat batch's (`Locomotion.reset_worlds`, fields (N,)), as `step_fn` takes it.
+      length: control steps of the episode.
+      observe_fn: `observe_fn(acc, state) -> (acc, out)` after each step: `state` the worlds'
+        new state, `acc` what is summed up over the episode, `out` what is kept of each step
+        (None: nothing).
+      acc: the accumulator before the first step (a pytree; None: none).
+    Returns:
+      `(last, acc, outs)`: the state after `length` steps (however the episodes ended: the
+      worlds step on after a fall, `observe_fn` masks what it sums), the accumulator after the
+      last step, and each step's `out` stacked along a leading (length,) axis.
+    """
+
+    def control_step(carry, t):
+        state, acc = carry
+        state = step_fn(state, act_fn(state, t))
+        acc, out = observe_fn(acc, state)
+        return (state, acc), out
+
+    (last, acc), outs = jax.lax.scan(
+        control_step, (first, acc), jnp.arange(length, dtype=jnp.float32)
+    )
+    return last, acc, outs

@@ -1,11 +1,11 @@
 """Watch a saved controller walk its body: one evaluation episode, as a GIF and an MP4.
 
 `replay(saved, key)` rolls out the controller's deterministic policy on its body in MJX, as the
-PPO fitness's evaluation episodes do, and records the positions; `draw_frames` turns them into
-pictures with MuJoCo's renderer where OpenGL works (`evojax_morph.physics.opengl.choose_gl`:
-`MUJOCO_GL` if set, else the display's GL, else EGL, else OSMesa, each tried in a subprocess
-first) and otherwise with a matplotlib drawing of the capsules, which needs no GL;
-`write_video` encodes them.
+PPO fitness's evaluation episodes do (`tasks.rollout`, the episode loop they share), and records
+the positions; `draw_frames` turns them into pictures with MuJoCo's renderer where OpenGL works
+(`evojax_morph.physics.opengl.choose_gl`: `MUJOCO_GL` if set, else the display's GL, else EGL,
+else OSMesa, each tried in a subprocess first) and otherwise with a matplotlib drawing of the
+capsules, which needs no GL; `write_video` encodes them.
 `render_saved(saved, out)` does all three, and `render(run_dir, body)` for a body of a run
 directory (`python -m evojax_morph.render`).
 """
@@ -26,7 +26,7 @@ from evojax_morph.physics.opengl import choose_gl
 from evojax_morph.ppo.networks import make_deterministic_policy, make_init, make_networks
 from evojax_morph.run import saved_controllers
 from evojax_morph.run.saved_controllers import SavedController
-from evojax_morph.tasks import Locomotion
+from evojax_morph.tasks import Locomotion, rollout
 
 BACKENDS = ("auto", "mujoco", "matplotlib")
 
@@ -78,12 +78,13 @@ def _make_episode_fn(space, fitness):
     def episode(key, morph, params):
         model = space.mjx_model(morph)
         first = env.reset(key, model)
-
-        def step(state, _):
-            state = env.step(model, state, policy(params, state.obs))
-            return state, (state.data.qpos, state.reward, state.done, state.terminated)
-
-        _, out = jax.lax.scan(step, first, length=fitness.task.episode_length)
+        _, _, out = rollout(
+            lambda state, action: env.step(model, state, action),
+            lambda state, _: policy(params, state.obs),
+            first,
+            fitness.task.episode_length,
+            lambda _, s: (None, (s.data.qpos, s.reward, s.done, s.terminated)),
+        )
         return out + (first.data.qpos,)
 
     return episode, env.dt, make_init(env, networks, fitness.with_controllers(1).ppo)

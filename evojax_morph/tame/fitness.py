@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from evojax_morph import tasks
 from evojax_morph.morphology import Morphology
 from evojax_morph.spaces import Space
 from evojax_morph.tame.classifier import STATE_SIZE, Classifier, log_likelihood
@@ -114,14 +115,14 @@ class Tame:
             motor_labels = jax.random.randint(k_label, (task.action_size,), 0, cfg.num_primitives)
             freq, phase = self._freq[motor_labels], self._phase[motor_labels]
             start = task.reset(k_reset, model)
-
-            def step(state, t):
-                return task.step(model, state, jnp.cos(freq * t + phase)), state.diverged
-
-            end, diverged = jax.lax.scan(
-                step, start, jnp.arange(cfg.episode_length, dtype=jnp.float32)
+            end, diverged, _ = tasks.rollout(
+                lambda state, action: task.step(model, state, action),
+                lambda _, t: jnp.cos(freq * t + phase),
+                start,
+                cfg.episode_length,
+                lambda diverged, state: (diverged | state.diverged, None),
+                start.diverged,
             )
-            diverged = diverged.any() | end.diverged
             first, last = self._node_states(start.data), self._node_states(end.data)
             states = jnp.concatenate([last[:, :2] - first[:, :2], last[:, 2:]], -1)
             states = jnp.where(diverged | ~jnp.isfinite(states), 0.0, states)
