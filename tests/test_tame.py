@@ -200,3 +200,18 @@ def test_cli_runs_with_the_tame_fitness(trained, tmp_path):
     )
     summary = json.loads((tmp_path / "r" / "summary.json").read_text())
     assert math.isfinite(summary["best_fitness"])
+
+
+def test_tame_refuses_a_space_whose_limbs_are_not_its_nodes(tmp_path, capsys):
+    """The Constructor's template slots are not its bodies' nodes, so TAME cannot label its
+    motors: training there exits 2 saying so before anything is written (it raised an
+    IndexError), and `Tame` raises ValueError; the other spaces are taken."""
+    with pytest.raises(SystemExit) as e:
+        tame_cli.main(["--space", "constructor", "--out", str(tmp_path / "c")] + TINY)
+    assert e.value.code == 2 and "constructor space's limbs are not its nodes" in (
+        capsys.readouterr().err)
+    assert not (tmp_path / "c").exists()
+    with pytest.raises(ValueError, match="not its nodes"):
+        tame.Tame(em.make_space("constructor"))
+    assert [s for s in em.list_spaces() if tame.fitness.refused(em.make_space(s))] == [
+        "constructor"]

@@ -14,8 +14,9 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from evojax_morph.run.process import Parser
-from evojax_morph.spaces import make_space
+from evojax_morph.spaces import list_spaces, make_space
 from evojax_morph.tame import TameConfig, pick_held_out, pretrain
+from evojax_morph.tame.fitness import refused
 
 POSITIVE = ("population", "generations", "epochs", "episodes", "episode_length", "period",
             "num_freqs", "num_phases")
@@ -28,7 +29,7 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
         "`--fitness tame --classifier DIR`.",
     )
     add = parser.add_argument
-    add("--space", default="bad_walker")
+    add("--space", default="bad_walker", choices=list_spaces())
     add("--out", default=None, help="where to save the classifier (default: runs/tame-SPACE-seedS)")
     add("--seed", type=int, default=0)
     add("--population", type=int, default=16, help="bodies mutated per generation")
@@ -47,6 +48,8 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     for name in POSITIVE:
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be positive")
+    if refused(make_space(args.space)):
+        parser.error(refused(make_space(args.space)))
     return args
 
 

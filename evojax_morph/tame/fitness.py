@@ -81,10 +81,22 @@ def fitness_from(cfg: TameConfig, loglik: jax.Array, r: Rollouts) -> jax.Array:
     return control + cfg.coverage * coverage
 
 
+def refused(space: Space) -> str | None:
+    """Why TAME cannot run on `space`, or None: it labels a body's motors by the morphology's
+    nodes, so each limb of the space's template must be one node."""
+    if max(space.plan.limb_nodes, default=0) >= space.max_nodes:
+        return (f"TAME labels a body's motors by its nodes, and the {space.name} space's limbs "
+                f"are not its nodes (its template has {len(space.plan.limb_nodes)} limbs, a "
+                f"body at most {space.max_nodes} nodes)")
+    return None
+
+
 class Tame:
     """Rollouts and the fitness of one space; every method is pure and vmaps over bodies."""
 
     def __init__(self, space: Space, cfg: TameConfig = TameConfig()):
+        if refused(space):
+            raise ValueError(refused(space))
         self.space, self.cfg = space, cfg
         self.task = Locomotion(space, TaskConfig(episode_length=cfg.episode_length))
         self.classifier = make_classifier(space, cfg)
