@@ -16,8 +16,8 @@ from pathlib import Path
 
 import jax
 
+from evojax_morph.flags import Parser
 from evojax_morph.run import saved_controllers, video
-from evojax_morph.run.process import Parser
 
 
 def parse(argv) -> argparse.Namespace:

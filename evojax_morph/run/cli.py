@@ -35,16 +35,15 @@ from evojax_morph.fitnesses import (
     list_fitnesses,
     resolve_physics,
 )
+from evojax_morph.flags import Parser, given_settings
 from evojax_morph.physics.determinism import full_precision, persistent_cache
 from evojax_morph.physics.engines import AUTO, list_engines, registered
 from evojax_morph.run import checkpoints, driver
 from evojax_morph.run.pipeline import RunConfig
 from evojax_morph.run.process import (
-    Parser,
     add_agent_settings,
     add_distributed_flags,
     add_fitness_settings,
-    given_settings,
     start_deterministic,
     start_distributed,
 )
@@ -168,7 +167,7 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
 def make_parser(defaults: RunConfig, agent: str = "", fitness: str = "") -> argparse.ArgumentParser:
     """The run's flags in groups, their defaults `defaults`' (a RunConfig, GPU defaults
     applied), with `--agent.FIELD` for each of `agent`'s settings and `--fitness.FIELD` for
-    each of the fitness kind `fitness`'s (`process.add_settings`)."""
+    each of the fitness kind `fitness`'s (`flags.add_settings`)."""
     parser = Parser(
         prog="python -m evojax_morph.run",
         description=__doc__,

@@ -1,48 +1,20 @@
-"""A command's process before its work: the parser class of the commands (`run`, `render`,
-`tame`) and the flags it builds from a settings dataclass, and what must be set before
-anything starts a JAX backend (XLA's deterministic GPU ops, the start of a run over several
-hosts)."""
+"""The run command's process before its work: an agent's and a fitness kind's settings as its
+flags (`flags.add_settings`), and what must be set before anything starts a JAX backend (XLA's
+deterministic GPU ops, the start of a run over several hosts)."""
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import inspect
 import json
-import re
 from pathlib import Path
 
 from evojax_morph import agents
 from evojax_morph.fitnesses import get_fitness, list_fitnesses
+from evojax_morph.flags import Parser, add_settings
 from evojax_morph.physics.determinism import deterministic_gpu
 from evojax_morph.physics.engines import AUTO, may_take, registered
 from evojax_morph.run.pipeline import RunConfig
 from evojax_morph.sharding import init_distributed
-
-
-class Parser(argparse.ArgumentParser):
-    """An argparse parser whose errors are two lines on stderr and exit 2: the reason, and
-    where the flags are listed (argparse's own prints its whole usage block first)."""
-
-    def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message}\n{self.prog}: --help lists the flags\n")
-
-
-
-def add_settings(group, prefix: str, config: type) -> None:
-    """`--PREFIX.FIELD VALUE` for each field of a kind's settings dataclass `config` (an
-    agent's config, a fitness kind's params), typed by its default (a bool as true or false),
-    its help the field's comment; `given_settings` collects the ones given."""
-    notes = dict(re.findall(r"^\s+(\w+): [^=\n]+=[^#\n]*#\s*(.*)$", inspect.getsource(config),
-                            re.MULTILINE))
-    for f in dataclasses.fields(config):
-        kind = type(f.default)
-        if kind not in (bool, int, float, str):
-            continue
-        group.add_argument(
-            f"--{prefix}.{f.name}", dest=f"{prefix}.{f.name}", default=argparse.SUPPRESS,
-            type=boolean if kind is bool else kind, metavar=kind.__name__.upper(),
-            help=f"{notes.get(f.name, '')} (its default {f.default!r})".replace("%", "%%"))
 
 
 def add_agent_settings(parser, agent: str) -> None:
@@ -61,19 +33,6 @@ def add_fitness_settings(parser, fitness: str) -> None:
         add_settings(parser.add_argument_group(
             f"the {fitness} fitness's own settings (--fitness.FIELD: any field of its params)"),
             "fitness", get_fitness(fitness).params)
-
-
-def given_settings(args: argparse.Namespace, prefix: str) -> dict:
-    """The `--PREFIX.FIELD` flags of `args` (`add_settings`) given, as {FIELD: value}."""
-    return {k.removeprefix(prefix + "."): v for k, v in vars(args).items()
-            if k.startswith(prefix + ".")}
-
-
-def boolean(text: str) -> bool:
-    """true or false (any case), as a flag's value."""
-    if text.lower() not in ("true", "false"):
-        raise argparse.ArgumentTypeError(f"true or false, not {text!r}")
-    return text.lower() == "true"
 
 
 def add_distributed_flags(parser) -> None:

@@ -13,7 +13,7 @@ import jax
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from evojax_morph.run.process import Parser
+from evojax_morph.flags import Parser
 from evojax_morph.spaces import list_spaces, make_space
 from evojax_morph.tame import TameConfig, pick_held_out, pretrain
 from evojax_morph.tame.fitness import refused
