@@ -2,6 +2,8 @@
 
 import evojax_morph.physics.templates  # noqa: F401  (first: it imports mjx quietly)
 from evojax_morph.agents import AskTell, ask_tell, list_agents
+from evojax_morph.figures.video import render as render_video
+from evojax_morph.figures.video import replay
 from evojax_morph.fitnesses import FitnessConfig, FitnessResult, list_fitnesses, standard_ppo
 from evojax_morph.fitnesses.batched import evaluate, init_params, make_env
 from evojax_morph.mdp import EvolutionEnv
@@ -14,12 +16,10 @@ from evojax_morph.physics.determinism import (
 )
 from evojax_morph.physics.engines import list_engines
 from evojax_morph.ppo import Params, PPOConfig, make_train
-from evojax_morph.run.bodylog import best_bodies
-from evojax_morph.run.confirm import Confirmed, confirm
-from evojax_morph.run.saved_controllers import SavedController
-from evojax_morph.run.saved_controllers import load as load_controller
-from evojax_morph.run.video import render as render_video
-from evojax_morph.run.video import replay
+from evojax_morph.records.bodylog import best_bodies
+from evojax_morph.records.saved_controllers import SavedController
+from evojax_morph.records.saved_controllers import load as load_controller
+from evojax_morph.search.confirm import Confirmed, confirm
 from evojax_morph.sharding import batch_mesh, init_distributed
 from evojax_morph.spaces import Space, list_spaces, make_space
 from evojax_morph.tasks import Locomotion, TaskConfig, list_tasks, make_task

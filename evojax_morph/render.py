@@ -16,8 +16,9 @@ from pathlib import Path
 
 import jax
 
+from evojax_morph.figures import video
 from evojax_morph.flags import Parser
-from evojax_morph.run import saved_controllers, video
+from evojax_morph.records import saved_controllers
 
 
 def parse(argv) -> argparse.Namespace:

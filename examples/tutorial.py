@@ -27,9 +27,10 @@ import matplotlib.pyplot as plt
 
 import evojax_morph as em
 from evojax_morph import tasks
-from evojax_morph.run import cli, plots, video
-from evojax_morph.run.bodylog import shapes
-from evojax_morph.run.saved_controllers import SavedController
+from evojax_morph.figures import plots, video
+from evojax_morph.records.bodylog import shapes
+from evojax_morph.records.saved_controllers import SavedController
+from evojax_morph.run import cli
 
 OUT = Path(sys.argv[1] if len(sys.argv) > 1 else "tutorial_out")
 OUT.mkdir(parents=True, exist_ok=True)

@@ -50,7 +50,7 @@ from evojax_morph.physics import engines
 from evojax_morph.physics import warp as ew
 from evojax_morph.physics.determinism import full_precision
 from evojax_morph.physics.templates import MUJOCO_WARP
-from evojax_morph.run.confirm import t_interval
+from evojax_morph.search.confirm import t_interval
 
 STANDARD = em.FitnessConfig(ppo=em.standard_ppo(10_000))
 

@@ -34,7 +34,7 @@ import jax
 import evojax_morph as em
 from evojax_morph.agents import dqn
 from evojax_morph.physics.determinism import full_precision
-from evojax_morph.run.pipeline import RunConfig, build
+from evojax_morph.search.pipeline import RunConfig, build
 from evojax_morph.sharding import batch_mesh
 from experiments.bench_fitness import STANDARD, median_time
 from experiments.bench_fitness import agreement as fitness_agreement

@@ -1,6 +1,6 @@
 """Shared by the figure scripts: run one agent over several seeds at once, and plot bands.
 
-An agent's seeds run as a study of one method (`evojax_morph.run.study`): S seeds of N parallel
+An agent's seeds run as a study of one method (`evojax_morph.search.study`): S seeds of N parallel
 evolutions evaluate S x N bodies a step in one fitness call, one compiled call a chunk; the
 wall-clock time of a step is that of the whole batch (all seeds together).
 """
@@ -19,8 +19,8 @@ import numpy as np
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from evojax_morph.run import study  # noqa: E402
-from evojax_morph.run.pipeline import RunConfig  # noqa: E402
+from evojax_morph.search import study  # noqa: E402
+from evojax_morph.search.pipeline import RunConfig  # noqa: E402
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,7 +83,7 @@ def run_config(agent: str, setup: Setup) -> RunConfig:
 def run_agent(agent: str, setup: Setup, seeds: int, resume: Path | None = None,
               deadline: float | None = None) -> dict | None:
     """`seeds` independent runs of `agent`, built as the run command builds them and run by the
-    library's loop (a study of one method, `run.study.run_study`; seed s from
+    library's loop (a study of one method, `search.study.run_study`; seed s from
     split(PRNGKey(0), seeds)[s]); returns per-step arrays of shape (steps, seeds, ...).
 
     With `resume`, the runs so far are saved there after every chunk and picked up from there

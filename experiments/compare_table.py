@@ -51,7 +51,7 @@ import evojax_morph as em
 from evojax_morph.agents import list_agents, predictor
 from evojax_morph.fitnesses import FitnessConfig
 from evojax_morph.fitnesses import table as table_fitness
-from evojax_morph.run.pipeline import RunConfig, agent_config, build
+from evojax_morph.search.pipeline import RunConfig, agent_config, build
 from evojax_morph.spaces import make_space
 from experiments.common import agent_overrides, band, holm, save
 

@@ -23,7 +23,7 @@ import numpy as np
 import evojax_morph as em
 from evojax_morph import ppo
 from evojax_morph.physics.engines import get_engine
-from evojax_morph.run.confirm import t_interval
+from evojax_morph.search.confirm import t_interval
 from evojax_morph.tasks import Locomotion
 from experiments.build_tables import revision
 

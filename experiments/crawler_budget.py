@@ -25,7 +25,8 @@ import jax
 import numpy as np
 
 import evojax_morph as em
-from evojax_morph.run import saved_controllers, video
+from evojax_morph.figures import video
+from evojax_morph.records import saved_controllers
 from evojax_morph.spaces.crawler import ADD, EXTEND
 from experiments.build_tables import revision
 from experiments.common import plt, save

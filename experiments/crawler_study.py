@@ -1,5 +1,5 @@
 """Which method finds the better bodies in a space of 2.75 million? (issue 63) Every method and
-every seed of the Crawler comparison in one batched program (`evojax_morph.run.study`).
+every seed of the Crawler comparison in one batched program (`evojax_morph.search.study`).
 
 The study: --methods x --seeds runs, each --num-envs evolutions x --steps steps (N x T
 evaluations a run, equal for every method: evolution's re-measures of its survivors are among
@@ -53,11 +53,13 @@ import numpy as np
 import scipy.stats
 
 import evojax_morph as em
+from evojax_morph.figures import video
 from evojax_morph.fitnesses import get_fitness
 from evojax_morph.physics import engines
-from evojax_morph.run import saved_controllers, study, video
-from evojax_morph.run.checkpoints import write_atomic
-from evojax_morph.run.pipeline import build
+from evojax_morph.records import saved_controllers
+from evojax_morph.records.checkpoints import write_atomic
+from evojax_morph.search import study
+from evojax_morph.search.pipeline import build
 from evojax_morph.tasks import gait_word
 from experiments.build_tables import revision
 from experiments.common import Setup, agent_overrides, band, plt, run_config, save

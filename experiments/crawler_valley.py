@@ -18,7 +18,7 @@ import jax
 import numpy as np
 
 import evojax_morph as em
-from evojax_morph.run.pipeline import build
+from evojax_morph.search.pipeline import build
 from experiments.build_tables import revision
 from experiments.common import Setup, run_config
 

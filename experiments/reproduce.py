@@ -40,10 +40,10 @@ import numpy as np
 import scipy.stats
 
 import evojax_morph as em
+from evojax_morph.figures import plots
 from evojax_morph.physics.determinism import full_precision
-from evojax_morph.run import plots
-from evojax_morph.run.confirm import t_interval
-from evojax_morph.run.pipeline import (
+from evojax_morph.search.confirm import t_interval
+from evojax_morph.search.pipeline import (
     NO_OP,
     agent_config,
     build,

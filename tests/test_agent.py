@@ -11,7 +11,7 @@ import evojax_morph as em
 from evojax_morph import agents
 from evojax_morph.agents import dqn, qrdqn
 from evojax_morph.mdp import REMEASURE, EvolutionEnv, masked_argmax
-from evojax_morph.run.pipeline import RunConfig, build
+from evojax_morph.search.pipeline import RunConfig, build
 
 HORIZON, NUM_ENVS, CHUNK, CHUNKS = 4, 16, 50, 4
 CFG = dqn.DQNConfig(hidden=32, epsilon_steps=100, learning_starts=64)
@@ -276,7 +276,7 @@ def test_greedy_rollout_is_the_step_by_step_greedy_walk():
     stepped one `env.step` at a time, on the deterministic predefined fitness, where a fresh
     controller and an inherited one score a body alike: the same bodies, actions and fitness,
     m0 first."""
-    from evojax_morph.run.pipeline import make_greedy_evaluation, make_greedy_walk
+    from evojax_morph.search.pipeline import make_greedy_evaluation, make_greedy_walk
 
     p = build(RunConfig(space="bad_walker", fitness="predefined", num_envs=4, horizon=4,
                         hidden=16, learning_starts=4, explore_steps=2))

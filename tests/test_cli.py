@@ -22,9 +22,7 @@ from conftest import DAMAGES, data_files, flip, truncate
 
 import evojax_morph as em
 from evojax_morph.physics import engines
-from evojax_morph.run import cli, compile_ahead
-from evojax_morph.run import confirm_stage as confirming
-from evojax_morph.run.checkpoints import (
+from evojax_morph.records.checkpoints import (
     DAMAGED,
     FINITE,
     Damaged,
@@ -36,7 +34,9 @@ from evojax_morph.run.checkpoints import (
     restore_newest,
     write_atomic,
 )
-from evojax_morph.run.pipeline import RunConfig, build
+from evojax_morph.run import cli, compile_ahead
+from evojax_morph.run import confirm_stage as confirming
+from evojax_morph.search.pipeline import RunConfig, build
 
 TINY = [
     "--space",
@@ -373,7 +373,7 @@ def test_a_full_disk_stops_the_run_with_one_line_and_exit_1(tmp_path, capsys, mo
     checkpoints before it are kept."""
     import errno
 
-    from evojax_morph.run import checkpoints as ckpt
+    from evojax_morph.records import checkpoints as ckpt
 
     write, metrics_writes = ckpt.write_atomic, []
 
@@ -395,7 +395,7 @@ def test_a_read_only_body_log_stops_the_run_with_one_line_and_resumes(tmp_path, 
     log writes (we run as root, where chmod stops no write, so its connection is opened again
     read-only: SQLite's own error, not an OSError): exit 1, one line naming bodies.sqlite and
     step 3, no traceback; a --resume once the fault is gone ends as the uninterrupted run."""
-    from evojax_morph.run import bodylog
+    from evojax_morph.records import bodylog
 
     add = bodylog.BodyLog.add
 
@@ -685,7 +685,7 @@ def test_a_damaged_shape_in_the_body_log_is_named(tmp_path, straight):
     """A body's shape in the log that does not read, or that is another body's, is an error
     naming the body (`checkpoints.Damaged`: the run exits 2), never a traceback in the confirm
     stage or a body confirmed that the log did not evaluate."""
-    from evojax_morph.run import bodylog
+    from evojax_morph.records import bodylog
 
     space = em.make_space("bad_walker")
     path = tmp_path / "bodies.sqlite"

@@ -13,10 +13,11 @@ from conftest import truncate
 
 import evojax_morph as em
 from evojax_morph.fitnesses import table as tb
-from evojax_morph.run import bodylog, cli
+from evojax_morph.records import bodylog
+from evojax_morph.records.checkpoints import Damaged, seal
+from evojax_morph.run import cli
 from evojax_morph.run import confirm_stage as confirming
-from evojax_morph.run.checkpoints import Damaged, seal
-from evojax_morph.run.pipeline import RunConfig
+from evojax_morph.search.pipeline import RunConfig
 
 S = 8  # results a body in the tables here
 STEADY, LUCKY, UNLUCKY = 350.0, 400.0, -1000.0
@@ -117,8 +118,8 @@ def test_the_greedy_trajectory_joins_the_confirm_call(walker, tmp_path, monkeypa
     last, none apart; each greedy body's fitness is the mean of its C values there; the
     confirmed bodies (confirmed.json, the best body) are the body log's alone; a --resume of
     the finished run keeps the trajectory's results and evaluates nothing."""
-    from evojax_morph.run import confirm as confirm_module
     from evojax_morph.run import driver
+    from evojax_morph.search import confirm as confirm_module
 
     space = walker[0]
     calls, evaluate = [], confirm_module.evaluate

@@ -72,7 +72,7 @@ import matplotlib
 matplotlib.use(sys.argv[1])  # the importer's choice, which evojax_morph must keep
 b = matplotlib.get_backend(); f = os.environ.get("XLA_FLAGS")
 import evojax_morph
-from evojax_morph.run import plots  # every figure's module, and one figure drawn
+from evojax_morph.figures import plots  # every figure's module, and one figure drawn
 from evojax_morph.run import report
 plots.plot_curve(sys.argv[2], [0, 1, 2], [1, 2, 3], [0, 1, 2], [2, 3, 4])
 print(json.dumps([b, matplotlib.get_backend(), f, os.environ.get("XLA_FLAGS")]))

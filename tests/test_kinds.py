@@ -109,7 +109,7 @@ def test_a_new_agent_with_a_setting_runs_from_the_command_line(tmp_path, monkeyp
     acts on it; a bad value, a setting of another agent and a --resume that would change it
     exit 2; a shared setting given as `--agent.population` resolves the tournament from it."""
     from evojax_morph.run import cli
-    from evojax_morph.run.pipeline import RunConfig, agent_config, build
+    from evojax_morph.search.pipeline import RunConfig, agent_config, build
 
     monkeypatch.setitem(agents._REGISTRY, "nth", agents.AgentKind("nth", NthConfig, make_nth))
     with pytest.raises(SystemExit):

@@ -25,12 +25,13 @@ from PIL import Image
 
 import evojax_morph as em
 from evojax_morph import ppo, render
+from evojax_morph.figures import video
 from evojax_morph.physics import opengl
 from evojax_morph.physics.engines import get_engine
-from evojax_morph.run import bodylog, saved_controllers, video
+from evojax_morph.records import bodylog, saved_controllers
+from evojax_morph.records.checkpoints import Damaged
 from evojax_morph.run import confirm_stage as confirming
-from evojax_morph.run.checkpoints import Damaged
-from evojax_morph.run.pipeline import Greedy, RunConfig, build
+from evojax_morph.search.pipeline import Greedy, RunConfig, build
 from evojax_morph.tasks import Locomotion
 from experiments import controller_engines, crawler_study
 
@@ -333,7 +334,7 @@ def test_render_command_and_its_bad_input(run_dir, tmp_path, capsys):
 
 _DRAW = (
     "import numpy as np, evojax_morph as em\n"
-    "from evojax_morph.run import video\n"
+    "from evojax_morph.figures import video\n"
     "s = em.make_space('bad_walker')\n"
     "saved = em.SavedController(s, None, 0, s.optimum(), None, 0.0, 'best')\n"
     "rep = video.Replay(np.tile(s.template.qpos0, (2, 1)), np.zeros(1), 0.02)\n"

@@ -18,7 +18,7 @@ from evojax_morph import agents
 from evojax_morph.agents import a2c, baselines
 from evojax_morph.fitnesses import table as tb
 from evojax_morph.morphology import signature
-from evojax_morph.run.pipeline import RunConfig, build
+from evojax_morph.search.pipeline import RunConfig, build
 
 ROOT = Path(__file__).resolve().parents[1]
 

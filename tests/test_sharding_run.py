@@ -18,7 +18,7 @@ from evojax_morph.run import cli
 assert jax.device_count() == 4
 # the greedy walk, and its bodies' call apart from the confirm stage's, compile for one device
 # (the rollout split, one body a call, hung on 2 GPUs)
-from evojax_morph.run.pipeline import RunConfig, build, make_greedy_evaluation, make_greedy_walk
+from evojax_morph.search.pipeline import RunConfig, build, make_greedy_evaluation, make_greedy_walk
 from evojax_morph.sharding import batch_mesh, replicated
 p = build(RunConfig(space="bad_walker", fitness="predefined", num_envs=4, horizon=2))
 everywhere = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=replicated(batch_mesh()))

@@ -283,7 +283,7 @@ def test_a_mutation_that_changes_nothing_is_named_a_no_op():
     """The greedy trajectory's names (`pipeline.action_name`): the root's mutations and a move
     to where a foot already is say "(no-op)"; a move or a removal that changes the body does
     not."""
-    from evojax_morph.run.pipeline import action_name
+    from evojax_morph.search.pipeline import action_name
 
     space = em.make_space("bad_walker")
     m0, nm = space.initial(), space.num_mutations

@@ -12,8 +12,9 @@ import pytest
 import evojax_morph as em
 from evojax_morph import agents
 from evojax_morph.morphology import signature
-from evojax_morph.run import bodylog, study
-from evojax_morph.run.pipeline import RunConfig
+from evojax_morph.records import bodylog
+from evojax_morph.search import study
+from evojax_morph.search.pipeline import RunConfig
 from experiments import common, crawler_study
 
 METHODS = ("ddqn", "a2c", "random", "regularized_evolution", "evolution")

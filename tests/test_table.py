@@ -204,7 +204,7 @@ def test_an_agent_runs_on_the_table(walker, tmp_path):
     agent: a table fitness program is compiled afresh every run (its host callback keeps it
     out of the compilation cache), and a learning agent's would cost 20 s more; every agent's
     own loop is test_agent's."""
-    from evojax_morph.run.pipeline import RunConfig, build
+    from evojax_morph.search.pipeline import RunConfig, build
 
     space, _, names = walker
     table = synthetic(walker, tmp_path / "t.npz")

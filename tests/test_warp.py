@@ -509,7 +509,7 @@ worlds = sorted({int(n) for call in calls for n in re.findall(r"tensor<(\d+)x", 
 # the agents' loop around it (m0, one Double-DQN step): GSPMD failed to compile it under jax
 # 0.10, jax 0.11 hung it on 2 GPUs; it has to compile and run, not only `evaluate`
 from evojax_morph.agents import dqn
-from evojax_morph.run.pipeline import RunConfig, build
+from evojax_morph.search.pipeline import RunConfig, build
 run = RunConfig(space="bad_walker", agent="ddqn", num_envs=4, horizon=2, train_steps=320,
                 physics="warp")
 init, chunk, _ = build(run, batch_mesh(), dqn.DQNConfig(learning_starts=0)).agent

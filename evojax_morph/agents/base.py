@@ -5,7 +5,7 @@ loop observe -> act -> mutate -> evaluate (one fitness call) -> track the best b
 ended episodes -> learn, run `num_steps` times in one jitted `lax.scan` per chunk.
 `make_ask_tell` gives the same step split around its fitness call, the caller evaluating
 (evosax's ask/tell): a user's own loop, and a study that evaluates several agents' children
-in one call (`evojax_morph.run.study`), step an agent through it.
+in one call (`evojax_morph.search.study`), step an agent through it.
 """
 
 from __future__ import annotations

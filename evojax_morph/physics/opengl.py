@@ -1,8 +1,8 @@
 """Which OpenGL MuJoCo's renderer draws with in this process, tried before it is loaded.
 
 `choose_gl` keeps `MUJOCO_GL` if set; otherwise it takes the first of GLFW (with a display),
-EGL and OSMesa that draws a picture in a subprocess (`probe_gl`). `evojax_morph.run.video` draws its
-frames on the GL chosen, and with matplotlib where there is none.
+EGL and OSMesa that draws a picture in a subprocess (`probe_gl`). `evojax_morph.figures.video` draws
+its frames on the GL chosen, and with matplotlib where there is none.
 """
 
 from __future__ import annotations

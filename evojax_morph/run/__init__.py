@@ -1,5 +1,6 @@
-"""A run, by stages: `pipeline` assembles space -> fitness -> MDP -> agent, `driver` runs the
-outer loop with its `checkpoints` and `bodylog`, `compile_ahead` lowers later programs on a
-second thread, `confirm_stage` measures the best bodies again (`confirm`) and chooses the run's
-best, `report` writes the summary with its `plots` and `video`, and `saved_controllers` keeps
-trained controllers with their bodies. `python -m evojax_morph.run` starts one (`cli`)."""
+"""The run command, `python -m evojax_morph.run` (`cli`, its `process`): a run by stages, the
+outer loop with its checkpoints and body log (`driver`), later programs lowered on a second
+thread (`compile_ahead`), the best bodies measured again and the run's best chosen
+(`confirm_stage`), the summary with its plots and video (`report`). The library's services it
+calls live apart: `search` (`pipeline`, `study`, `confirm`), `records` (`checkpoints`,
+`bodylog`, `saved_controllers`) and `figures` (`plots`, `video`)."""

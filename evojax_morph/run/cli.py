@@ -38,8 +38,8 @@ from evojax_morph.fitnesses import (
 from evojax_morph.flags import Parser, given_settings
 from evojax_morph.physics.determinism import full_precision, persistent_cache
 from evojax_morph.physics.engines import AUTO, list_engines, registered
-from evojax_morph.run import checkpoints, driver
-from evojax_morph.run.pipeline import RunConfig
+from evojax_morph.records import checkpoints
+from evojax_morph.run import driver
 from evojax_morph.run.process import (
     add_agent_settings,
     add_distributed_flags,
@@ -47,6 +47,7 @@ from evojax_morph.run.process import (
     start_deterministic,
     start_distributed,
 )
+from evojax_morph.search.pipeline import RunConfig
 from evojax_morph.sharding import barrier
 from evojax_morph.spaces import Space, get_space, list_spaces
 from evojax_morph.tasks import list_tasks, make_task

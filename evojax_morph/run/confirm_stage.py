@@ -17,10 +17,10 @@ import numpy as np
 
 from evojax_morph.fitnesses import FitnessConfig, get_fitness
 from evojax_morph.morphology import Morphology
-from evojax_morph.run import bodylog, checkpoints, saved_controllers
+from evojax_morph.records import bodylog, checkpoints, saved_controllers
 from evojax_morph.run.compile_ahead import Job
-from evojax_morph.run.confirm import Confirmed, confirm, lower_confirm, rank
-from evojax_morph.run.pipeline import Greedy, Pipeline, RunConfig
+from evojax_morph.search.confirm import Confirmed, confirm, lower_confirm, rank
+from evojax_morph.search.pipeline import Greedy, Pipeline, RunConfig
 from evojax_morph.sharding import to_host
 
 CONFIRM_SALT = 0x636F6E66  # the confirm stage's key: fold_in(PRNGKey(seed), CONFIRM_SALT)

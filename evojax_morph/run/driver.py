@@ -27,7 +27,7 @@ import jax
 import numpy as np
 
 from evojax_morph.physics.engines import registered
-from evojax_morph.run import bodylog, checkpoints, saved_controllers
+from evojax_morph.records import bodylog, checkpoints, saved_controllers
 from evojax_morph.run.compile_ahead import Job, Warmup
 from evojax_morph.run.confirm_stage import (
     best_controllers,
@@ -35,7 +35,8 @@ from evojax_morph.run.confirm_stage import (
     confirm_stage,
     greedy_apart,
 )
-from evojax_morph.run.pipeline import (
+from evojax_morph.run.report import report_jobs, report_stage
+from evojax_morph.search.pipeline import (
     Greedy,
     Pipeline,
     RunConfig,
@@ -43,7 +44,6 @@ from evojax_morph.run.pipeline import (
     make_greedy_evaluation,
     make_greedy_walk,
 )
-from evojax_morph.run.report import report_jobs, report_stage
 from evojax_morph.sharding import barrier, batch_mesh, replicated, to_host
 
 

@@ -13,7 +13,7 @@ from evojax_morph.fitnesses import get_fitness, list_fitnesses
 from evojax_morph.flags import Parser, add_settings
 from evojax_morph.physics.determinism import deterministic_gpu
 from evojax_morph.physics.engines import AUTO, may_take, registered
-from evojax_morph.run.pipeline import RunConfig
+from evojax_morph.search.pipeline import RunConfig
 from evojax_morph.sharding import init_distributed
 
 

@@ -9,11 +9,11 @@ import time
 import jax
 import numpy as np
 
+from evojax_morph.figures import plots, video
 from evojax_morph.fitnesses import FitnessConfig
-from evojax_morph.run import plots, video
-from evojax_morph.run.checkpoints import write_atomic
+from evojax_morph.records.checkpoints import write_atomic
 from evojax_morph.run.compile_ahead import Job
-from evojax_morph.run.pipeline import Greedy
+from evojax_morph.search.pipeline import Greedy
 from evojax_morph.tasks import gait_word
 
 

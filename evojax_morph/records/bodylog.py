@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from evojax_morph.morphology import Morphology
-from evojax_morph.run.checkpoints import Damaged
+from evojax_morph.records.checkpoints import Damaged
 from evojax_morph.spaces import Space
 
 SCHEMA = """CREATE TABLE IF NOT EXISTS bodies (

@@ -30,9 +30,9 @@ from evojax_morph import agents
 from evojax_morph.agents.base import Policy, make_ask_tell
 from evojax_morph.mdp import EvolutionEnv, EvoState
 from evojax_morph.morphology import canonical, signature
-from evojax_morph.run.bodylog import ranked
-from evojax_morph.run.checkpoints import write_atomic
-from evojax_morph.run.pipeline import Pipeline, RunConfig, agent_config, build
+from evojax_morph.records.bodylog import ranked
+from evojax_morph.records.checkpoints import write_atomic
+from evojax_morph.search.pipeline import Pipeline, RunConfig, agent_config, build
 from evojax_morph.sharding import jit_replicated, to_host
 
 _signatures = jax.jit(jax.vmap(jax.vmap(signature)))  # (S, N, ...) bodies -> (S, N, 2)

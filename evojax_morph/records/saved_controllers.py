@@ -21,7 +21,7 @@ import jax
 from evojax_morph import ppo
 from evojax_morph.fitnesses import FitnessConfig, get_fitness
 from evojax_morph.morphology import Morphology
-from evojax_morph.run.checkpoints import check, digests, read_error, seal, unseal
+from evojax_morph.records.checkpoints import check, digests, read_error, seal, unseal
 from evojax_morph.spaces import Space, make_space
 
 DIR = "controllers"

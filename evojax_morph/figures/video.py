@@ -24,8 +24,8 @@ import numpy as np
 
 from evojax_morph.physics.opengl import choose_gl
 from evojax_morph.ppo.networks import make_deterministic_policy, make_init, make_networks
-from evojax_morph.run import saved_controllers
-from evojax_morph.run.saved_controllers import SavedController
+from evojax_morph.records import saved_controllers
+from evojax_morph.records.saved_controllers import SavedController
 from evojax_morph.tasks import Locomotion, rollout
 
 BACKENDS = ("auto", "mujoco", "matplotlib")

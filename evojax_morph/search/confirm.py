@@ -6,8 +6,8 @@ a Spearman correlation of 0.10), and with inheritance a body's fitness in a run 
 training its lineage gave it. `confirm` evaluates each candidate again from scratch: C
 independent evaluations (controllers trained from fresh initialisations, no inheritance; on the
 table fitness C fresh draws), all in one batched fitness call, and reports each body's mean
-with a 95% t-interval. A run's confirm stage (`confirm_stage`) ends with it, on the bodies of the
-highest mean in its body log.
+with a 95% t-interval. A run's confirm stage (`run.confirm_stage`) ends with it, on the bodies of
+the highest mean in its body log.
 """
 
 from __future__ import annotations

@@ -121,7 +121,7 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
 class Greedy(NamedTuple):
     """A greedy rollout from m0: horizon + 1 bodies, m0 first. The walk (`make_greedy_walk`)
     gives the bodies and actions; their evaluation (`make_greedy_evaluation`, or the confirm
-    stage's call, `confirm_stage`) their fitness and controllers."""
+    stage's call, `run.confirm_stage`) their fitness and controllers."""
 
     morphs: list  # the bodies (`Morphology`, on the host)
     fitness: list[float] | None  # each body's mean over its fresh controllers; None: not evaluated
@@ -195,7 +195,7 @@ def make_greedy_evaluation(p: Pipeline):
     device of this process (`build`). A fresh controller (trained from scratch, as the confirm
     stage's) is the measurement the run's own steps are not: there a child inherits its
     parent's. Where the confirm stage evaluates, these bodies join its call instead
-    (`confirm_stage.confirm_record`) and this is not called."""
+    (`run.confirm_stage.confirm_record`) and this is not called."""
     env1, init_fn, k = p.greedy_env, p.init_fn, p.fitness.ppo.controllers
     n = env1.horizon + 1
     device = jax.local_devices()[0]

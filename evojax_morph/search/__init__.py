@@ -1,0 +1,3 @@
+"""A search for bodies: a whole run assembled from its config (`pipeline`), many agents' runs
+stepping together with their children in one fitness call a step (`study`), and a search's
+best bodies confirmed by fresh evaluations (`confirm`, `em.confirm`)."""
