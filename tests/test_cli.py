@@ -251,7 +251,7 @@ def test_resume_matches_an_uninterrupted_run(tmp_path, straight, monkeypatch):
     # timing.json: this call's clock; the resumed call ran steps 4-9 in two chunks of 3
     t = json.loads((split / "timing.json").read_text())
     assert t["steps"] == 6 and t["seconds"] >= t["outside_steps_seconds"] >= 0
-    assert list(t["phases"]) == ["build_and_m0", "steps", "greedy_rollout", "confirm",
+    assert list(t["phases"]) == ["build_and_m0", "steps", "greedy_walk", "confirm",
                                  "controllers", "results", "best_gif"]
     assert abs(sum(t["phases"].values()) - t["seconds"]) < 0.5, t  # the phases fill the call
     assert 0 <= t["first_chunk_dispatch"] <= t["phases"]["steps"], t

@@ -330,8 +330,7 @@ def _evolve(run: Run, step: int, state, rows: list[dict], ahead: Warmup, clock: 
         ahead.wait("greedy")
         greedy = run.greedy_walk(state.learner, state.first, run.key_greedy)
     barrier("body log written")  # every process reads it in the confirm stage
-    clock.phase("greedy_rollout")  # the walk alone since issue 61 (its bodies' evaluation is in
-    # "confirm"); the name kept, as in docs/warp/run_timing.jsonl's rows
+    clock.phase("greedy_walk")  # the walk alone; its bodies are evaluated in "confirm"
     return Evolved(state, step, rows, chunk_seconds, dispatch, greedy, ranked, draw, proof)
 
 
