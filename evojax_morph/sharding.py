@@ -56,7 +56,7 @@ def shard_batch(fn: Callable, mesh: Mesh | None = None, manual: bool = False) ->
     Without `manual` the split is a sharding constraint on the inputs and outputs, which XLA's
     partitioner carries through `fn`. Each device computes its own elements; the one
     communication left is a one-flag all-reduce per iteration of MJX's solver loop (a vmapped
-    while loop runs until every element converged, now on every device), so results equal one
+    while loop runs until every element converged, on every device), so results equal one
     device's up to rounding. `jax.shard_map` would drop that flag, but MJX's JAX step under
     shard_map crashed XLA's CUDA plugin on 2 GPUs (jax 0.11.2; see docs/benchmarks.md), so the
     JAX engine keeps the constraints and Warp, which needs it, takes shard_map.

@@ -137,7 +137,7 @@ def agreement(space, ways: dict, bodies: int, seeds: int, mutations: int) -> dic
             "jax": jax.__version__, "date": time.strftime("%Y-%m-%d")}
 
 
-def main():
+def make_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--space", default="bad_walker")
@@ -164,6 +164,66 @@ def main():
                         help="instead of timings: N bodies x --seeds keys with "
                         "one template and with size classes, in distribution (`agreement`)")
     parser.add_argument("--seeds", type=int, default=16, help="keys per body for --agreement")
+    return parser
+
+
+def emit(row: dict, out: str | None) -> None:
+    """Prints `row` as JSON, and appends it to the JSON-lines file `out` if given."""
+    print(json.dumps(row), flush=True)
+    if out:
+        with open(out, "a") as f:
+            f.write(json.dumps(row) + "\n")
+
+
+def measure(args, space, cfg, walk, batch: int) -> dict:
+    """The row of one batch: the PPO fitness timed batched and one body at a time, and the raw
+    physics at the same worlds (B bodies x K x num_envs worlds, no learning)."""
+    keys = jax.random.split(jax.random.PRNGKey(batch), batch)
+    morphs = walk(keys, args.mutations)
+    evaluate = lambda: em.evaluate(space, morphs, keys, cfg).fitness  # timed now
+    t_batch, repeat_diff, repeat_differing = timed(evaluate, args.repeats)
+
+    t_single = one_at_a_time(space, morphs, keys, cfg, min(batch, args.single))
+
+    # Raw physics at the same worlds: B bodies x K x num_envs worlds, no learning.
+    models = jax.jit(jax.vmap(space.mjx_model))(morphs)
+    worlds = args.controllers * cfg.ppo.num_envs
+    rollout = make_raw_physics(engines.get_engine(args.physics), space, 100)
+    t_phys = median_time(lambda: rollout(models, worlds), args.repeats)
+    physics_rate = batch * worlds * 100 / t_phys
+
+    steps = ppo.env_steps_per_morphology(cfg.task, cfg.ppo)
+    train_rate = batch * steps / t_batch
+    warp = args.physics == "warp"
+    return {
+        "space": args.space, "physics": args.physics, "device": jax.devices()[0].device_kind,
+        "deterministic": args.deterministic, "mujoco_warp": MUJOCO_WARP if warp else None,
+        "warp_deterministic": args.warp_deterministic, "train_steps": args.train_steps,
+        "controllers": args.controllers, "update_epochs": cfg.ppo.update_epochs,
+        "batch": batch, "mutations": args.mutations, "classes": cfg.classes,
+        "env_steps_per_morphology": steps, "evals_per_s": batch / t_batch,
+        "train_steps_per_s": train_rate, "physics_steps_per_s_raw": physics_rate,
+        "ppo_over_physics": train_rate * cfg.task.frame_skip / physics_rate,
+        "one_at_a_time_s": t_single, "batch_s": t_batch,
+        "batching_gain": None if t_single is None else t_single / t_batch,
+        "repeat_diff": repeat_diff,
+        "repeat_differing": repeat_differing,  # of `batch` fitness values
+        "date": time.strftime("%Y-%m-%d")}
+
+
+def print_table(rows: list[dict]) -> None:
+    print(f"\n{'B':>5} {'classes':>7} {'evals/s':>9} {'steps/s':>10} {'raw phys/s':>11} "
+          f"{'ppo/phys':>9} {'1-at-a-time s':>14} {'batch s':>8} {'gain':>6} {'repeat diff':>11}")
+    for r in rows:
+        print(f"{r['batch']:>5} {str(r['classes']):>7} {r['evals_per_s']:>9.3g} "
+              f"{r['train_steps_per_s']:>10.3g} {r['physics_steps_per_s_raw']:>11.3g} "
+              f"{r['ppo_over_physics']:>9.0%} {fmt(r['one_at_a_time_s'], '>14.3g')} "
+              f"{r['batch_s']:>8.3g} {fmt(r['batching_gain'], '>6.1f')} "
+              f"{r['repeat_diff']:>11.3g} {r['repeat_differing']:>4}/{r['batch']}")
+
+
+def main():
+    parser = make_parser()
     args = parser.parse_args()
     if args.single < 0:
         parser.error("--single must be >= 0")
@@ -179,66 +239,19 @@ def main():
     if args.update_epochs is not None:
         ppo_cfg = dataclasses.replace(ppo_cfg, update_epochs=args.update_epochs)
     cfg = em.FitnessConfig(ppo=ppo_cfg, physics=args.physics)
-    steps = ppo.env_steps_per_morphology(cfg.task, cfg.ppo)
-    frame_skip = cfg.task.frame_skip
     if args.agreement:
         ways = {"one_template": (cfg, None), "classes": (dataclasses.replace(cfg, classes=True),
                                                          None)}
         row = agreement(space, ways, args.agreement, args.seeds, args.mutations) | {
             "physics": args.physics, "train_steps": args.train_steps}
-        print(json.dumps(row))
-        if args.out:
-            with open(args.out, "a") as f:
-                f.write(json.dumps(row) + "\n")
+        emit(row, args.out)
         return
     walk = jax.jit(jax.vmap(space.random_morphology, (0, None)), static_argnums=1)
     rows = []
     for batch, by_class in itertools.product(args.batches, [False, True][:1 + args.classes]):
-        cfg = dataclasses.replace(cfg, classes=by_class)
-        keys = jax.random.split(jax.random.PRNGKey(batch), batch)
-        morphs = walk(keys, args.mutations)
-        evaluate = lambda: em.evaluate(space, morphs, keys, cfg).fitness  # noqa: B023  (timed now)
-        t_batch, repeat_diff, repeat_differing = timed(evaluate, args.repeats)
-
-        t_single = one_at_a_time(space, morphs, keys, cfg, min(batch, args.single))
-
-        # Raw physics at the same worlds: B bodies x K x num_envs worlds, no learning.
-        models = jax.jit(jax.vmap(space.mjx_model))(morphs)
-        worlds = args.controllers * cfg.ppo.num_envs
-        rollout = make_raw_physics(engines.get_engine(args.physics), space, 100)
-        t_phys = median_time(lambda: rollout(models, worlds), args.repeats)  # noqa: B023
-        physics_rate = batch * worlds * 100 / t_phys
-
-        train_rate = batch * steps / t_batch
-        warp = args.physics == "warp"
-        rows.append({
-            "space": args.space, "physics": args.physics, "device": jax.devices()[0].device_kind,
-            "deterministic": args.deterministic, "mujoco_warp": MUJOCO_WARP if warp else None,
-            "warp_deterministic": args.warp_deterministic, "train_steps": args.train_steps,
-            "controllers": args.controllers, "update_epochs": ppo_cfg.update_epochs,
-            "batch": batch, "mutations": args.mutations, "classes": by_class,
-            "env_steps_per_morphology": steps, "evals_per_s": batch / t_batch,
-            "train_steps_per_s": train_rate, "physics_steps_per_s_raw": physics_rate,
-            "ppo_over_physics": train_rate * frame_skip / physics_rate,
-            "one_at_a_time_s": t_single, "batch_s": t_batch,
-            "batching_gain": None if t_single is None else t_single / t_batch,
-            "repeat_diff": repeat_diff,
-            "repeat_differing": repeat_differing,  # of `batch` fitness values
-            "date": time.strftime("%Y-%m-%d")})
-        print(json.dumps(rows[-1]), flush=True)
-        if args.out:
-            with open(args.out, "a") as f:
-                f.write(json.dumps(rows[-1]) + "\n")
-
-    print(f"\n{'B':>5} {'classes':>7} {'evals/s':>9} {'steps/s':>10} {'raw phys/s':>11} "
-          f"{'ppo/phys':>9} {'1-at-a-time s':>14} {'batch s':>8} {'gain':>6} {'repeat diff':>11}")
-    for r in rows:
-        print(f"{r['batch']:>5} {str(r['classes']):>7} {r['evals_per_s']:>9.3g} "
-              f"{r['train_steps_per_s']:>10.3g} {r['physics_steps_per_s_raw']:>11.3g} "
-              f"{r['ppo_over_physics']:>9.0%} {fmt(r['one_at_a_time_s'], '>14.3g')} "
-              f"{r['batch_s']:>8.3g} {fmt(r['batching_gain'], '>6.1f')} "
-              f"{r['repeat_diff']:>11.3g} {r['repeat_differing']:>4}/{r['batch']}")
-
+        rows.append(measure(args, space, dataclasses.replace(cfg, classes=by_class), walk, batch))
+        emit(rows[-1], args.out)
+    print_table(rows)
 
 if __name__ == "__main__":
     main()

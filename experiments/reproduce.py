@@ -301,6 +301,59 @@ def draw_unrolls(r: dict, title: str):
     return fig
 
 
+def draw_compare(runs: dict[str, dict], out: Path) -> None:
+    """RL against evolution (`runs`: compare_METHOD): each run's confirmed body, the
+    differences of the means, and each returned body's draw against its confirmation."""
+    effects = compare_effects(runs)
+    fig, (ax_m, ax_d, ax_g) = plt.subplots(1, 3, figsize=(15, 4.2),
+                                           gridspec_kw={"width_ratios": [4, 4, 3]})
+    colors = {agent: f"C{i}" for i, agent in enumerate(effects["agents"])}
+    for i, (agent, e) in enumerate(effects["agents"].items()):
+        spread = 0.45 * np.arange(e["seeds"]) / max(e["seeds"] - 1, 1)  # left of the mean
+        x, y = i - 0.4 + spread, np.asarray(e["confirmed"])
+        lo, hi = np.asarray(e["confirmed_ci95"]).T
+        ax_m.errorbar(x, y, yerr=[y - lo, hi - y],
+                      fmt="o", ms=4, capsize=2, color=colors[agent], alpha=0.6)
+        ax_m.errorbar(i + 0.2, e["mean"], fmt="s", ms=7, capsize=5, color="k",
+                      yerr=[[e["mean"] - e["ci95"][0]], [e["ci95"][1] - e["mean"]]])
+        ax_g.plot([i - 0.15, i + 0.15], [e["returned_draw"], e["confirmed"]], "-o", ms=4,
+                  color=colors[agent], alpha=0.7)
+    short = lambda text: text.replace("regularized_evolution", "reg. evol.")  # noqa: E731
+    names = [short(n) for n in effects["agents"]]
+    ax_m.set_xticks(range(len(names)), names)
+    ax_m.set_title("each run's returned body, confirmed (colour);\n"
+                   "mean over seeds with 95% t-CI (black)", fontsize=10)
+    ax_m.set(ylabel=f"mean of {e['controllers']} fresh controllers (95% CI)")
+    for j, d in enumerate(effects["differences"].values()):
+        lo, hi = d["difference"] - d["ci95"][0], d["ci95"][1] - d["difference"]
+        ax_d.errorbar(j, d["difference"], yerr=[[lo], [hi]], fmt="s", capsize=5, color="k")
+    ax_d.axhline(0.0, color="0.5", lw=0.8)
+    ax_d.set_xticks(range(len(effects["differences"])),
+                    [short(d) for d in effects["differences"]], rotation=30, fontsize=8,
+                    ha="right")
+    ax_d.set_title("difference of the means over seeds,\n95% Welch t-CI (none holds "
+                   "after Holm)" if not any(d["significant_holm"] for d in
+                                             effects["differences"].values())
+                   else "difference of the means over seeds,\n95% Welch t-CI", fontsize=10)
+    ax_d.set(ylabel="confirmed fitness difference")
+    ax_g.set_xticks(range(len(names)), names)
+    ax_g.set_yscale("log")
+    ax_g.set_title("each run's returned body: its best single draw\nin the run (left), "
+                   "its confirmed mean (right)", fontsize=10)
+    ax_g.set(ylabel="fitness of the returned body")
+    first = next(iter(runs.values()))
+    task, space = first.get("task", "distance"), first.get("space", "constructor")
+    default = WALK_TRAIN_STEPS if task == "walk" else TRAIN_STEPS
+    steps = first.get("fitness", {}).get("train_steps", default)
+    fig.suptitle(f"{space.title()}, {task} task, {first['evaluations_per_run']:,} evaluations "
+                 f"a run of {steps:,} PPO steps: RL against evolution and random walks",
+                 fontsize=10)
+    name = f"compare_{space}" + ("" if task == "distance" else f"_{task}")
+    if steps != default:  # another budget than the task's, said in the name: _20k, _320
+        name += f"_{steps // 1000}k" if steps % 1000 == 0 else f"_{steps}"
+    save(fig, out, name, {"task": task, "effects": effects, "runs": runs})
+
+
 def draw(data: Path, out: Path) -> None:
     """The figures from the data files present."""
     load = lambda n: json.loads((data / f"{n}.json").read_text())  # noqa: E731
@@ -335,54 +388,7 @@ def draw(data: Path, out: Path) -> None:
         save(fig, out, "fig8_a2c_constructor", r)
     runs = {n[len("compare_"):]: load(n) for n in sorted(have) if n.startswith("compare_")}
     if runs:
-        effects = compare_effects(runs)
-        fig, (ax_m, ax_d, ax_g) = plt.subplots(1, 3, figsize=(15, 4.2),
-                                               gridspec_kw={"width_ratios": [4, 4, 3]})
-        colors = {agent: f"C{i}" for i, agent in enumerate(effects["agents"])}
-        for i, (agent, e) in enumerate(effects["agents"].items()):
-            spread = 0.45 * np.arange(e["seeds"]) / max(e["seeds"] - 1, 1)  # left of the mean
-            x, y = i - 0.4 + spread, np.asarray(e["confirmed"])
-            lo, hi = np.asarray(e["confirmed_ci95"]).T
-            ax_m.errorbar(x, y, yerr=[y - lo, hi - y],
-                          fmt="o", ms=4, capsize=2, color=colors[agent], alpha=0.6)
-            ax_m.errorbar(i + 0.2, e["mean"], fmt="s", ms=7, capsize=5, color="k",
-                          yerr=[[e["mean"] - e["ci95"][0]], [e["ci95"][1] - e["mean"]]])
-            ax_g.plot([i - 0.15, i + 0.15], [e["returned_draw"], e["confirmed"]], "-o", ms=4,
-                      color=colors[agent], alpha=0.7)
-        short = lambda text: text.replace("regularized_evolution", "reg. evol.")  # noqa: E731
-        names = [short(n) for n in effects["agents"]]
-        ax_m.set_xticks(range(len(names)), names)
-        ax_m.set_title("each run's returned body, confirmed (colour);\n"
-                       "mean over seeds with 95% t-CI (black)", fontsize=10)
-        ax_m.set(ylabel=f"mean of {e['controllers']} fresh controllers (95% CI)")
-        for j, d in enumerate(effects["differences"].values()):
-            lo, hi = d["difference"] - d["ci95"][0], d["ci95"][1] - d["difference"]
-            ax_d.errorbar(j, d["difference"], yerr=[[lo], [hi]], fmt="s", capsize=5, color="k")
-        ax_d.axhline(0.0, color="0.5", lw=0.8)
-        ax_d.set_xticks(range(len(effects["differences"])),
-                        [short(d) for d in effects["differences"]], rotation=30, fontsize=8,
-                        ha="right")
-        ax_d.set_title("difference of the means over seeds,\n95% Welch t-CI (none holds "
-                       "after Holm)" if not any(d["significant_holm"] for d in
-                                                 effects["differences"].values())
-                       else "difference of the means over seeds,\n95% Welch t-CI", fontsize=10)
-        ax_d.set(ylabel="confirmed fitness difference")
-        ax_g.set_xticks(range(len(names)), names)
-        ax_g.set_yscale("log")
-        ax_g.set_title("each run's returned body: its best single draw\nin the run (left), "
-                       "its confirmed mean (right)", fontsize=10)
-        ax_g.set(ylabel="fitness of the returned body")
-        first = next(iter(runs.values()))
-        task, space = first.get("task", "distance"), first.get("space", "constructor")
-        default = WALK_TRAIN_STEPS if task == "walk" else TRAIN_STEPS
-        steps = first.get("fitness", {}).get("train_steps", default)
-        fig.suptitle(f"{space.title()}, {task} task, {first['evaluations_per_run']:,} evaluations "
-                     f"a run of {steps:,} PPO steps: RL against evolution and random walks",
-                     fontsize=10)
-        name = f"compare_{space}" + ("" if task == "distance" else f"_{task}")
-        if steps != default:  # another budget than the task's, said in the name: _20k, _320
-            name += f"_{steps // 1000}k" if steps % 1000 == 0 else f"_{steps}"
-        save(fig, out, name, {"task": task, "effects": effects, "runs": runs})
+        draw_compare(runs, out)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -8,7 +8,7 @@ for regularized evolution's runs and the predictor's on another device, as refer
 each K both hold and each budget (10,000 evaluations: the confirmed rule; 2,000: the confirmed
 rule taken early), the mean regret of the returned bodies with a bootstrap 95% interval over
 seeds, and transfer minus control (and minus regularized evolution) in mean true fitness with
-`compare_table.effect`'s intervals (over seeds and the table's results), Holm over every
+`table_stats.effect`'s intervals (over seeds and the table's results), Holm over every
 difference at once. The figure: the regret of each run's best-so-far body (the draw rule) against
 evaluations, median and quartiles over seeds, per K.
 
@@ -27,7 +27,7 @@ from evojax_morph.fitnesses import FitnessConfig
 from evojax_morph.fitnesses import table as table_fitness
 from evojax_morph.spaces import make_space
 from experiments.common import band, holm, plt, save
-from experiments.compare_table import effect, resampled_means, returned_rows
+from experiments.table_stats import effect, resampled_means, returned_rows
 
 RULES = {"10000": "confirmed", "2000": "confirmed_early"}  # evaluations a run: the rule
 

@@ -20,7 +20,7 @@ HOMES = {
     "space": (em.list_spaces(), ("spaces/",)),
     "fitness": (em.list_fitnesses(), ("fitnesses/",)),
     "agent": (agents.list_agents(), ("agents/",)),
-    "engine": (engines.list_engines(), ("physics/engines.py", "physics/warp.py")),
+    "engine": (engines.list_engines(), ("physics/engines.py", "physics/warp")),  # warp*.py
 }
 
 

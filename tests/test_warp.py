@@ -23,7 +23,7 @@ from conftest import float64
 from mujoco.mjx import warp as mjx_warp
 
 import evojax_morph as em
-from evojax_morph.physics import templates
+from evojax_morph.physics import templates, warp_models
 from evojax_morph.physics import warp as ew
 from evojax_morph.physics.templates import mjx
 from evojax_morph.spaces import crawler as cr
@@ -110,7 +110,7 @@ def test_capsule_boxes_match_mujocos(space):
     m = jax.tree.map(lambda x: x[0], _morphs(space))
     export = mujoco.MjModel.from_xml_string(space.to_mjcf(m))
     sizes = _bodies(space).geom_size[0]
-    boxes = np.asarray(ew._capsule_aabb(space.template, sizes))
+    boxes = np.asarray(warp_models._capsule_aabb(space.template, sizes))
     for g in range(export.ngeom):
         name = export.geom(g).name
         expected = export.geom_aabb[g].reshape(2, 3)

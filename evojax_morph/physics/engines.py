@@ -48,7 +48,7 @@ class Engine(NamedTuple):
       devices: a batch of bodies splits by `jax.shard_map` instead (`sharding.shard_batch`).
     graph_capture: on a GPU its step replays CUDA graphs captured from XLA's stream, which a
       compile on another thread breaks: a run compiles nothing ahead beside it, and on several
-      GPUs lowers nothing ahead either (runs there hung; `compile_ahead`, `driver.execute`).
+      GPUs lowers nothing ahead either (a run there can hang; `compile_ahead`, `driver.execute`).
     unreproducible: why a run stepping on it on a GPU is not reproducible from its seed whatever
       XLA does ("" where it is): the run then leaves XLA's deterministic ops off, which would
       only cost time (`process.start_deterministic`).

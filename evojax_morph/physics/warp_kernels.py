@@ -16,7 +16,8 @@ import math
 import os
 
 from evojax_morph.physics.templates import SpaceLike
-from evojax_morph.physics.warp import buffers, callback_lock, graph_conditional, written
+from evojax_morph.physics.warp_models import buffers, written
+from evojax_morph.physics.warp_runtime import callback_lock, graph_conditional
 
 # The modules of MuJoCo Warp that a step loads on every space, all at their default block size,
 # beside MJX's own Warp call (`mujoco.mjx.warp.ffi`). Measured on the CPU (warp-lang 1.19, MJX

@@ -255,8 +255,8 @@ class Space(abc.ABC):
     def template(self) -> mujoco.MjModel:
         """The padded MuJoCo model holding every slot of the space: m0's layout with every
         slot on. Two compiled programs on the host (`host_layout`), also when first asked for
-        inside a trace; op by op, m0 and its layout were 50 to 134 programs, each compiled
-        on its first use, on the accelerator."""
+        inside a trace; op by op, m0 and its layout would be 50 to 134 programs, each
+        compiled on its first use, on the accelerator."""
         full = self.host_layout(_on_host(jax.jit(self.initial)))
         full = full.replace(limb_active=np.ones_like(full.limb_active),
                             geom_active=np.ones_like(full.geom_active))
