@@ -22,7 +22,8 @@ p and intervals that hold together over all the differences (`reproduce.compare_
 A call runs the part of the seeds [--first-seed, --first-seed + --seeds) (seed s starts from
 fold_in(PRNGKey(0), s) in any part) and resumes where it stopped: the agents' states after
 every chunk in DATA/seeds_A-B/state.pkl (hundreds of MB on the Crawler: they stay on the
-machine that ran them), the confirmations as they come. A finished part leaves
+machine that ran them; checked against the SHA-256 of every array at a resume), the
+confirmations as they come. A finished part leaves
 DATA/seeds_A-B/results.pkl (small, no agent state: it travels), and every call ends by making
 the data file OUT/study_SPACE_TASK.json and its figure (.png: confirmed fitness against
 evaluations spent, a band over seeds per method; distinct bodies each run visited) from every

@@ -13,6 +13,7 @@ import evojax_morph as em
 from evojax_morph import agents
 from evojax_morph.morphology import signature
 from evojax_morph.records import bodylog
+from evojax_morph.records.checkpoints import Damaged
 from evojax_morph.search import study
 from evojax_morph.search.pipeline import RunConfig
 from experiments import common, crawler_study
@@ -69,6 +70,7 @@ def runs_as_alone(names, tmp_path):
                             preload=lambda: events.append("preload") or Loading())
     assert events == ["preload", "waited", "chunk", "chunk"], events
     study.run_study(s, keys, 2, chunk=2, resume=tmp_path / "s.pkl")  # a call that stops
+    refuses_a_changed_save(s, keys, tmp_path / "s.pkl")
     resumed = study.run_study(s, keys, STEPS, chunk=2, resume=tmp_path / "s.pkl")
     for a, b in zip(jax.tree.leaves((whole["states"], whole["metrics"])),
                     jax.tree.leaves((resumed["states"], resumed["metrics"]))):
@@ -92,6 +94,23 @@ def runs_as_alone(names, tmp_path):
             elif name != "bodies":
                 np.testing.assert_allclose(np.swapaxes(x, 0, 1), got[name], rtol=1e-5,
                                            atol=1e-7, err_msg=m.name)
+
+
+def refuses_a_changed_save(s, keys, path):
+    """A study's save with one number changed after it was written, or without its digest
+    (saved before saves had one), is refused before anything runs, naming the file and the
+    array; the save itself is left as it was."""
+    whole = path.read_bytes()
+    saved = pickle.loads(whole)
+    saved["states"] = jax.tree.map(np.array, saved["states"])  # writable host copies
+    leaf = next(x for x in jax.tree.leaves(saved["states"]) if x.dtype.kind == "f")
+    leaf.flat[0] += 1.0
+    for bad, why in ((saved, "its SHA-256 is not the saved one"),
+                     ({k: v for k, v in saved.items() if k != "digest"}, "no digest saved")):
+        path.write_bytes(pickle.dumps(bad))
+        with pytest.raises(Damaged, match=f"{path} is damaged: .*{why}"):
+            study.run_study(s, keys, STEPS, chunk=2, resume=path)
+    path.write_bytes(whole)
 
 
 def test_the_baselines_run_as_alone_and_resume_as_one_go(tmp_path):

@@ -31,7 +31,7 @@ from evojax_morph.agents.base import Policy, make_ask_tell
 from evojax_morph.mdp import EvolutionEnv, EvoState
 from evojax_morph.morphology import canonical, signature
 from evojax_morph.records.bodylog import ranked
-from evojax_morph.records.checkpoints import write_atomic
+from evojax_morph.records.checkpoints import check, digests, read_error, write_atomic
 from evojax_morph.search.pipeline import Pipeline, RunConfig, agent_config, build
 from evojax_morph.sharding import jit_replicated, to_host
 
@@ -151,13 +151,15 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
     `chunk`, resumable.
 
     With `resume`, the states and metrics so far are saved there after the start and after
-    every chunk (a pickle, written beside and renamed over: a call stopped mid-write leaves
-    the last whole save) and picked up by the next call; past `deadline` (time.time()) it
-    returns None after the chunk in progress, to be called again. since: when this call's work
-    began (time.time(), e.g. before building the study; default: now). log: called with a
-    line of progress after every chunk (e.g. `print`). preload: None, or a function starting
-    the engine's preload (`Engine.preload`) and returning its Future: started before this
-    call's first program compiles, waited for before that program runs.
+    every chunk (a pickle with the SHA-256 of every array, as a run's checkpoints keep them,
+    written beside and renamed over: a call stopped mid-write leaves the last whole save) and
+    picked up by the next call, which raises `checkpoints.Damaged` where they do not match;
+    past `deadline` (time.time()) it returns None after the chunk in progress, to be called
+    again. since: when this call's work began (time.time(), e.g. before building the study;
+    default: now). log: called with a line of progress after every chunk (e.g. `print`).
+    preload: None, or a function starting the engine's preload (`Engine.preload`) and
+    returning its Future: started before this call's first program compiles, waited for
+    before that program runs.
 
     Returns:
       {"metrics": {method: {name: (num_steps, S, ...)}}, "states": the final states (host),
@@ -175,7 +177,7 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
             loading.pop().result()
         return program
 
-    so_far = pickle.loads(resume.read_bytes()) if resume and resume.exists() else None
+    so_far = read_saved(resume) if resume and resume.exists() else None
     if so_far is None:
         start = time.perf_counter()
         states = jax.block_until_ready(loaded(study.init.lower(keys).compile())(keys))
@@ -188,7 +190,7 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
         if resume is not None:
             kept = {**so_far, "states": to_host(states),
                     "seconds": so_far["seconds"] + time.time() - called}
-            write_atomic(resume, pickle.dumps(kept))
+            write_atomic(resume, pickle.dumps({**kept, "digest": digests(kept)}))
 
     keep()
     compiled = {}
@@ -220,6 +222,15 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
         "init_seconds": so_far["init_seconds"],
         "seconds": so_far["seconds"] + time.time() - called,
     }
+
+
+def read_saved(path: Path) -> dict:
+    """A study's save (`run_study`'s `resume`) without its digest, checked against it.
+    Raises `checkpoints.Damaged`, naming `path`, where it does not read or match."""
+    with read_error(str(path)):
+        saved = pickle.loads(path.read_bytes())
+        check(saved, saved.pop("digest", None) if isinstance(saved, dict) else None, finite=())
+    return saved
 
 
 def best_mean_bodies(metrics: dict, upto_steps: int,
