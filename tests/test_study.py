@@ -3,6 +3,7 @@ training): each method's seeds run as its agent runs them alone, in one fitness 
 
 import json
 import pickle
+import re
 from types import SimpleNamespace
 
 import jax
@@ -105,10 +106,10 @@ def refuses_a_changed_save(s, keys, path):
     saved["states"] = jax.tree.map(np.array, saved["states"])  # writable host copies
     leaf = next(x for x in jax.tree.leaves(saved["states"]) if x.dtype.kind == "f")
     leaf.flat[0] += 1.0
-    for bad, why in ((saved, "its SHA-256 is not the saved one"),
+    for bad, why in ((saved, r"\['states'\].*: its SHA-256 is not the saved one"),
                      ({k: v for k, v in saved.items() if k != "digest"}, "no digest saved")):
         path.write_bytes(pickle.dumps(bad))
-        with pytest.raises(Damaged, match=f"{path} is damaged: .*{why}"):
+        with pytest.raises(Damaged, match=f"{re.escape(str(path))} is damaged: {why}"):
             study.run_study(s, keys, STEPS, chunk=2, resume=path)
     path.write_bytes(whole)
 
