@@ -8,10 +8,10 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
+from evojax_morph.fitness_result import FitnessResult
 from evojax_morph.physics.engines import AUTO, list_engines, resolve
-from evojax_morph.ppo import Params, PPOConfig
+from evojax_morph.ppo import PPOConfig
 from evojax_morph.registry import Registry
 from evojax_morph.spaces import Space
 from evojax_morph.tasks import TaskConfig
@@ -86,35 +86,6 @@ class FitnessConfig:
                    classifier=d["classifier"], physics=d.get("physics", "jax"),
                    table=d.get("table", ""), classes=d.get("classes", False),
                    params=None if own is None else get_fitness(d["kind"]).params(**tuples(own)))
-
-
-@struct.dataclass
-class FitnessResult:
-    """What a fitness call returns for a batch of B bodies (`em.evaluate`). The gait, `distance`
-    and `upright`, is of the evaluation episodes: NaN for a kind that runs none (predefined,
-    TAME) and a table built without them.
-
-    Attributes:
-      fitness: (B,) float: the fitness of each morphology
-      fitness_std: (B,) float: spread across evaluation episodes (0 if deterministic)
-      diverged: (B,) bool: a simulation diverged; its fitness is finite but suspect
-      params: batched (B, ...) trained controllers; None for kinds without one
-      train_return: (B,) mean over envs of the last finished training episode's return
-      entropy: (B,) policy entropy per motor at the end of training
-      distance: (B,) metres the trunk moved forward in an episode, mean
-      upright: (B,) the fraction of an episode before a fall, mean (1: never fell)
-      env_steps: control steps spent per morphology
-    """
-
-    fitness: jax.Array  # (B,) float
-    fitness_std: jax.Array  # (B,) float
-    diverged: jax.Array  # (B,) bool
-    params: Params | None  # (B, ...)
-    train_return: jax.Array  # (B,) float
-    entropy: jax.Array  # (B,) float
-    distance: jax.Array  # (B,) float
-    upright: jax.Array  # (B,) float
-    env_steps: int = struct.field(pytree_node=False)
 
 
 def untrained_result(fitness: jax.Array, diverged: jax.Array, params, env_steps: int):

@@ -8,10 +8,8 @@ Every world of a fitness call (bodies x controllers x envs) steps as one flat ba
 
 from __future__ import annotations
 
-import jax
-
 from evojax_morph import ppo
-from evojax_morph.fitnesses.base import Fitness, FitnessConfig, FitnessResult
+from evojax_morph.fitnesses.base import Fitness, FitnessConfig
 from evojax_morph.physics import classes
 from evojax_morph.spaces import Space
 
@@ -35,23 +33,7 @@ def make(space: Space, cfg: FitnessConfig):
         train = classes.grouped(space, train, [
             ppo.make_train(c.space, cfg.task, cfg.ppo, cfg.physics, (c.limbs, space))[1]
             for c, _ in space.size_classes()])
-    env_steps = ppo.env_steps_per_morphology(cfg.task, cfg.ppo)
-
-    def evaluate(keys: jax.Array, morphs, params: ppo.Params) -> FitnessResult:
-        out = train(keys, morphs, params)
-        return FitnessResult(
-            fitness=out.fitness,
-            fitness_std=out.fitness_std,
-            diverged=out.diverged,
-            params=out.params,
-            train_return=out.train_return,
-            entropy=out.entropy,
-            distance=out.distance,
-            upright=out.upright,
-            env_steps=env_steps,
-        )
-
-    return init, evaluate
+    return init, train  # train returns the FitnessResult itself
 
 
 FITNESS = Fitness(

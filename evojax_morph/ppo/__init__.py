@@ -1,8 +1,9 @@
 """The inner PPO: one pure function trains the controllers of a batch of different bodies.
 
 `make_train(space, task_cfg, ppo_cfg, physics)` returns `init(key) -> Params` and
-`train(keys, morphs, params) -> TrainResult`, batched over bodies at its top: `jax.jit(train)`
-trains B bodies, each with `controllers` x `num_envs` worlds, in one compiled call. Policies,
+`train(keys, morphs, params) -> FitnessResult` (`evojax_morph.fitness_result`: the PPO fitness
+kind returns it as it is), batched over bodies at its top: `jax.jit(train)` trains B bodies,
+each with `controllers` x `num_envs` worlds, in one compiled call. Policies,
 values and updates are vmapped over the B x K controllers; the physics of a control step is ONE
 step of all B x K x num_envs worlds on the engine `physics` names (`physics.engines`): the
 flat batch MuJoCo Warp needs, and on the JAX engine a vmap over bodies around their worlds. With
@@ -37,7 +38,6 @@ from evojax_morph.ppo.networks import (
 )
 from evojax_morph.ppo.train import (
     Episodes,
-    TrainResult,
     env_steps_per_morphology,
     make_evaluate_learners,
     make_learn,
@@ -49,7 +49,6 @@ __all__ = [
     "Episodes",
     "PPOConfig",
     "Params",
-    "TrainResult",
     "Transition",
     "env_steps_per_morphology",
     "make_deterministic_policy",

@@ -10,8 +10,8 @@ import jax.numpy as jnp
 import optax
 from brax.training.acme import running_statistics
 from brax.training.agents.ppo import losses as ppo_losses
-from flax import struct
 
+from evojax_morph.fitness_result import FitnessResult
 from evojax_morph.morphology import Morphology, tree_select
 from evojax_morph.physics.engines import Engine, get_engine, repeat_worlds
 from evojax_morph.ppo.networks import (
@@ -37,19 +37,6 @@ class Rollout(NamedTuple):
     keys: jax.Array  # (L,) the learners' keys
 
 
-@struct.dataclass
-class TrainResult:
-    params: Params  # the trained controller; with K > 1 controllers, a leading (K,) axis
-    fitness: jax.Array  # (): mean return of the deterministic evaluation episodes (of all K)
-    fitness_std: jax.Array  # (): standard deviation of the K controllers' mean returns (K > 1),
-    # else of the evaluation episodes' returns
-    diverged: jax.Array  # () bool: some simulation diverged (its reward was zeroed)
-    train_return: jax.Array  # (): mean over envs of each env's last finished training episode
-    entropy: jax.Array  # (): policy entropy per active motor at the end of training
-    distance: jax.Array  # (): metres the trunk moved forward in an evaluation episode, mean
-    upright: jax.Array  # (): the fraction of an evaluation episode before a fall, mean
-
-
 def make_policy(space: Space, task_cfg: TaskConfig = TaskConfig(), cfg: PPOConfig = PPOConfig()):
     """`policy(params, obs) -> action`: the deterministic actions (..., A) of one controller
     (no leading K axis) for (..., obs_size) observations, as the evaluation episodes act."""
@@ -68,7 +55,7 @@ def make_train(
     (`Locomotion`).
 
     init(key) -> Params: one body's controllers (K stacked along a leading axis if K > 1).
-    train(keys (B,), morphs (B, ...), params (B, ...)) -> TrainResult of (B,) arrays: each body
+    train(keys (B,), morphs (B, ...), params (B, ...)) -> FitnessResult of (B,) arrays: each body
       trains its K controllers from `params`, every world of every body (B x K x num_envs) in
       one flat physics batch (`evojax_morph.physics.engines`), then scores them (`eval_episodes`
       deterministic episodes each, B x K x eval_episodes worlds).
@@ -79,7 +66,7 @@ def make_train(
     networks = make_networks(env, cfg)
     train_learners = make_train_learners(space, env, get_engine(physics), networks, cfg)
 
-    def train(keys: jax.Array, morphs: Morphology, params: Params) -> TrainResult:
+    def train(keys: jax.Array, morphs: Morphology, params: Params) -> FitnessResult:
         # Full float32 matmuls wherever train is traced (em.evaluate, the agents' loops): TF32 on
         # GPUs perturbs physics and PPO more than RL tolerates.
         with jax.default_matmul_precision("highest"):
@@ -92,7 +79,7 @@ def make_train(
             merge = lambda x: x.reshape((bodies * k,) + x.shape[2:])
             out = train_learners(merge(keys), models, jax.tree.map(merge, params))
             out = jax.tree.map(lambda x: x.reshape((bodies, k) + x.shape[1:]), out)
-            return TrainResult(
+            return FitnessResult(
                 params=out.params,
                 fitness=out.fitness.mean(1),
                 fitness_std=out.fitness.std(1),
@@ -101,6 +88,7 @@ def make_train(
                 entropy=out.entropy.mean(1),
                 distance=out.distance.mean(1),
                 upright=out.upright.mean(1),
+                env_steps=env_steps_per_morphology(task_cfg, cfg),
             )
 
     return make_init(env, networks, cfg), train
@@ -110,10 +98,10 @@ _split2 = jax.vmap(jax.random.split)  # (L,) keys -> (L, 2) keys
 
 
 def make_train_learners(space: Space, env: Locomotion, engine: Engine, networks, cfg: PPOConfig):
-    """`train_learners(keys (L,), models (B,), params (L, ...)) -> TrainResult of (L,) arrays`:
+    """`train_learners(keys (L,), models (B,), params (L, ...)) -> FitnessResult of (L,) arrays`:
     L = B x K learners (controllers), learner l on body l // K with num_envs worlds, all L x
     num_envs worlds stepped as one flat batch; PPO updates, then `eval_episodes` deterministic
-    episodes per learner."""
+    episodes per learner (`env_steps`: one learner's)."""
     optimizer = optax.chain(
         optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate)
     )
@@ -122,8 +110,9 @@ def make_train_learners(space: Space, env: Locomotion, engine: Engine, networks,
     evaluate = make_evaluate_learners(space, env, engine, cfg)
     num_envs = cfg.num_envs
     by_learner = lambda x: x.reshape((-1, num_envs) + x.shape[1:])
+    learner_steps = env_steps_per_morphology(env.cfg, cfg) // cfg.controllers
 
-    def train_learners(keys: jax.Array, models, params: Params) -> TrainResult:
+    def train_learners(keys: jax.Array, models, params: Params) -> FitnessResult:
         learners = keys.shape[0]
         keys, key_reset = jnp.moveaxis(_split2(keys), 1, 0)
         with jax.named_scope("reset"):
@@ -166,7 +155,7 @@ def make_train_learners(space: Space, env: Locomotion, engine: Engine, networks,
         diverged = episodes.diverged.any(-1) | (metrics["diverged"].any(0) if steps else False)
         returns = episodes.returns
         last = lambda name: metrics[name][-1] if steps else jnp.zeros(learners)
-        return TrainResult(
+        return FitnessResult(
             params=params,
             fitness=jnp.nan_to_num(returns.mean(-1)),
             fitness_std=jnp.nan_to_num(returns.std(-1)),
@@ -175,6 +164,7 @@ def make_train_learners(space: Space, env: Locomotion, engine: Engine, networks,
             entropy=last("entropy"),
             distance=episodes.distance.mean(-1),
             upright=episodes.upright.mean(-1),
+            env_steps=learner_steps,
         )
 
     return train_learners
