@@ -117,6 +117,20 @@ def barrier(name: str) -> None:
         multihost_utils.sync_global_devices(name)
 
 
+def broadcast_json(value):
+    """Process 0's `value` (JSON-able) on every process: itself with one process."""
+    if jax.process_count() == 1:
+        return value
+    import json
+
+    from jax.experimental import multihost_utils
+
+    data = np.frombuffer(json.dumps(value).encode(), np.uint8)
+    size = multihost_utils.broadcast_one_to_all(np.int64(len(data)))
+    data = np.resize(data, int(size))  # the others' padding, overwritten
+    return json.loads(bytes(multihost_utils.broadcast_one_to_all(data)).decode())
+
+
 def init_distributed(
     coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None
 ):

@@ -1,7 +1,9 @@
 """Shared test set-up: CPU backend, a persistent compilation cache, and small helpers."""
 
 import contextlib
+import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -106,3 +108,34 @@ def data_files(checkpoint: Path) -> list[Path]:
                  if (checkpoint / d).is_dir()]
     assert files and json_item, f"not a checkpoint of a run or a controller: {checkpoint}"
     return files + json_item
+
+
+def run_shape(out: Path, printed: str) -> dict:
+    """What a run leaves and prints, less what its numbers decide: the files by name, the keys
+    and types of its JSON files (timing.json's keys), metrics.csv's columns and the printed
+    lines, each number a #, each body BODY and each mutation MUTATION, a body's drawing and the
+    progress bar left out. Comparable across CPUs, which round a run's numbers differently."""
+
+    def skeleton(x):
+        if isinstance(x, dict):
+            return {k: skeleton(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return [skeleton(x[0])] if x else []
+        return type(x).__name__
+
+    number = re.compile(r"-?\d+(\.\d+)?(e[-+]?\d+)?")
+    lines = []
+    for line in printed.replace(str(out), "OUT").replace("\r", "\n").splitlines():
+        line = " ".join(number.sub("#", line).split())
+        line = re.sub(r"#@\S*(?: #@\S*)*", "BODY", line)  # a body's canonical name
+        line = re.sub(r"node #: \S+( \(no-op\))?", "node #: MUTATION", line)
+        if line and not line.startswith(("├", "└", "│", "#: ", "time: ")) and "|" not in line:
+            lines.append(line)
+    files = sorted(p.name + "/" * p.is_dir() for p in out.iterdir())
+    shape = {"files": files, "printed": lines,
+             "metrics.csv": (out / "metrics.csv").read_text().splitlines()[0]}
+    for name in ("config.json", "summary.json", "confirmed.json"):
+        if (out / name).exists():
+            shape[name] = skeleton(json.loads((out / name).read_text()))
+    shape["timing.json"] = sorted(json.loads((out / "timing.json").read_text()))
+    return shape

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import DAMAGES, data_files, flip, truncate
+from conftest import DAMAGES, data_files, flip, run_shape, truncate
 
 import evojax_morph as em
 from evojax_morph.physics import engines
@@ -718,12 +718,14 @@ COMPILED = "Finished XLA compilation of "  # compiled, or loaded from the persis
 
 
 @pytest.mark.parametrize("confirm", [2, 0])
-def test_a_run_compiles_its_later_programs_ahead(tmp_path, caplog, confirm):
+def test_a_run_compiles_its_later_programs_ahead(tmp_path, caplog, capsys, confirm):
     """The chunks (of 3 steps and of the last 1), the greedy walk and the confirm stage's
     fitness call (which evaluates the greedy bodies too), or with --confirm 0 the greedy
     bodies' own call, are lowered and compiled on the warmup thread, while m0 is evaluated:
     the main thread lowers and compiles none of them. (A table fitness: it has draws to
-    confirm, and compiles fast.)"""
+    confirm, and compiles fast.) The run leaves the files and prints the lines it did before
+    its stages handed values in memory (tests/data/run_shape.json: `run_shape` of this run at
+    8cf9bc6, the numbers, bodies and mutations left out)."""
     args = ["--space", "bad_walker", "--fitness", "table", "--num-envs", "4", "--steps", "4",
             "--chunk", "3", "--explore-steps", "4", "--learning-starts", "8", "--confirm",
             str(confirm), "--confirm-controllers", "2", "--out", str(tmp_path / "run")]
@@ -741,6 +743,9 @@ def test_a_run_compiles_its_later_programs_ahead(tmp_path, caplog, confirm):
         assert [by_thread[True, name] for name in later] == ahead, done
         assert [by_thread[False, name] for name in later] == [0, 0, 0, 0], done
         assert by_thread[False, "jit(init)"] == 1, done  # m0's, on the main thread
+    stored = json.loads((Path(__file__).parent / "data" / "run_shape.json").read_text())
+    assert run_shape(tmp_path / "run", capsys.readouterr().out) == \
+        stored[f"table, --confirm {confirm}"]
 
 
 def test_with_warp_on_a_gpu_the_warmup_thread_only_lowers(caplog):

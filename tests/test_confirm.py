@@ -17,6 +17,7 @@ from evojax_morph.records import bodylog
 from evojax_morph.records.checkpoints import Damaged, seal
 from evojax_morph.run import cli
 from evojax_morph.run import confirm_stage as confirming
+from evojax_morph.run.resume import kept_record
 from evojax_morph.search.pipeline import RunConfig
 
 S = 8  # results a body in the tables here
@@ -109,7 +110,7 @@ def test_resume_of_a_finished_run_does_not_confirm_again(planted, tmp_path, monk
     truncate(again / "confirmed.json")
     cfg = RunConfig(**json.loads((again / "config.json").read_text()))
     with pytest.raises(Damaged, match=r"confirmed.json does not read \(JSONDecodeError: "):
-        confirming.confirm_record(again, None, cfg, 4)
+        kept_record(again, cfg, 4, {})
 
 
 def test_the_greedy_trajectory_joins_the_confirm_call(walker, tmp_path, monkeypatch):
@@ -118,7 +119,6 @@ def test_the_greedy_trajectory_joins_the_confirm_call(walker, tmp_path, monkeypa
     last, none apart; each greedy body's fitness is the mean of its C values there; the
     confirmed bodies (confirmed.json, the best body) are the body log's alone; a --resume of
     the finished run keeps the trajectory's results and evaluates nothing."""
-    from evojax_morph.run import driver
     from evojax_morph.search import confirm as confirm_module
 
     space = walker[0]
@@ -133,7 +133,7 @@ def test_the_greedy_trajectory_joins_the_confirm_call(walker, tmp_path, monkeypa
         return lambda *_: pytest.fail("the greedy bodies evaluated in a call of their own")
 
     monkeypatch.setattr(confirm_module, "evaluate", counted)
-    monkeypatch.setattr(driver, "make_greedy_evaluation", apart)
+    monkeypatch.setattr(confirming, "make_greedy_evaluation", apart)
     n, h, c = 2, 2, 3
     out = tmp_path / "run"
     assert cli.main(["--space", "bad_walker", "--fitness", "table", "--num-envs", "4",

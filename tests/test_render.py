@@ -31,6 +31,7 @@ from evojax_morph.physics.engines import get_engine
 from evojax_morph.records import bodylog, saved_controllers
 from evojax_morph.records.checkpoints import Damaged
 from evojax_morph.run import confirm_stage as confirming
+from evojax_morph.run.recorder import Recorder
 from evojax_morph.search.pipeline import Greedy, RunConfig, build
 from evojax_morph.tasks import Locomotion
 from experiments import controller_engines, crawler_study
@@ -55,8 +56,9 @@ def run_dir(tmp_path_factory):
     fitness = [12.5, 40.25]
     out = tmp_path_factory.mktemp("run")
     greedy = Greedy([space.initial(), space.optimum()], fitness, ["..."], params)
-    saved = confirming.save_controllers(out, p, 7, space.optimum(), fitness[1], params[1], greedy)
-    assert saved == ["best", "step0", "step1"]
+    saved = confirming.save_controllers(p, 7, space.optimum(), fitness[1], params[1], greedy)
+    assert list(saved) == ["best", "step0", "step1"]
+    Recorder(out, lead=True).controllers(saved)
     return out, p, params, fitness
 
 
@@ -167,21 +169,26 @@ def test_confirmed_best_keeps_its_fresh_controllers(run_dir, tmp_path):
     log.close()
     cfg = RunConfig(fitness="ppo", train_steps=320, controllers=2, confirm=2,
                     confirm_controllers=2)
-    record, top, _ = confirming.confirm_record(tmp_path, p, cfg, 0)
+    path = tmp_path / "bodies.sqlite"
+    ranked = bodylog.best_bodies(path, 2)
+    shapes = bodylog.shapes(path, space, [b["body"] for b in ranked])
+    candidates = [(b, space.to_json(shapes[b["body"]])) for b in ranked]
+    record, top, _ = confirming.confirm_record(p, cfg, 0, candidates)
     confirmed = record["confirmed"]
     assert [c["log_mean"] for c in confirmed] in ([2.0, 1.0], [1.0, 2.0])
     assert top.body == confirmed[0]["body"] and top.mean == confirmed[0]["mean"]
     assert [c["controllers"] for c in confirmed] == [2, 2]
-    best, fitness, params, best_cfg = confirming.reported_best(tmp_path, p, record, top, None)
+    best, fitness, params, best_cfg = confirming.reported_best(p, record, top, None)
     assert best_cfg.ppo.controllers == 2 and fitness == top.mean
-    confirming.save_controllers(tmp_path, p, 7, best, fitness, params, None, best_cfg)
+    Recorder(tmp_path, lead=True).controllers(
+        confirming.save_controllers(p, 7, best, fitness, params, None, best_cfg))
     kept = em.load_controller(saved_controllers.body_dir(tmp_path, "best"))
     assert kept.fitness.ppo.controllers == 2 and kept.value == top.mean
     order = np.argsort(-top.values, kind="stable")  # controller 0 the best, for best.gif
     for saved, trained in zip(jax.tree.leaves(kept.params), jax.tree.leaves(top.params)):
         np.testing.assert_array_equal(saved, trained[order])
     record["best_morphology"] = best.to_dict()  # as confirmed.json keeps it
-    again = confirming.reported_best(tmp_path, p, record, None, None)
+    again = confirming.reported_best(p, record, None, None, kept)
     assert space.canonical(again[0]) == top.body and again[3] == best_cfg
     for x, y in zip(jax.tree.leaves(again[2]), jax.tree.leaves(kept.params)):
         np.testing.assert_array_equal(x, y)

@@ -1,5 +1,5 @@
 """A run's Orbax checkpoints: the manager of RUN/checkpoints, and the restore of the newest
-that reads (`restore_newest`), the damaged ones moved aside, for `run.driver`'s --resume.
+that reads (`restore_newest`), the damaged ones moved aside, for a --resume (`run.resume`).
 
 Every checkpoint proves what it holds: beside the agent state it keeps, in the same atomic save,
 the SHA-256 of each array's bytes (`save_args`); a restore recomputes them (`restore_checked`).
@@ -7,7 +7,7 @@ A digest that does not match or is missing, or non-finite values where the state
 (`FINITE`), make the checkpoint damaged, as one that does not read is. It also records which
 it is: its step and the proof of the run's body log up to it (`bodylog.BodyLog.proof`), so a
 checkpoint copied or renamed to another step is damaged too, and a --resume checks the body log
-against it (`run.driver`). Saved controllers and confirmed.json carry digests of the same kind
+against it (`run.resume`). Saved controllers and confirmed.json carry digests of the same kind
 (`digests`, `seal`); confirmed.json also the log's proof, kept only by a resume of that log.
 """
 

@@ -1,26 +1,25 @@
 """A run's confirm stage: the bodies of the highest mean in its body log confirmed (`confirm`),
 the greedy trajectory's bodies evaluated (in the same fitness call where it confirms now), and
-the body the run reports as its best chosen (`reported_best`).
-
-It writes and reads its own files, confirmed.json and the controllers of the best body and of
-the greedy trajectory (`save_controllers`), and hands the report stage a `Best`.
+the body the run reports as its best chosen (`reported_best`); it hands the report stage a
+`Best`, and the recorder confirmed.json and the controllers of the best body and of the greedy
+trajectory.
 """
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
 from typing import NamedTuple
 
 import jax
 import numpy as np
 
-from evojax_morph.fitnesses import FitnessConfig, get_fitness
+from evojax_morph.fitnesses import FitnessConfig
+from evojax_morph.fitnesses.batched import lower_evaluate
 from evojax_morph.morphology import Morphology
-from evojax_morph.records import bodylog, checkpoints, saved_controllers
+from evojax_morph.records import saved_controllers
 from evojax_morph.run.compile_ahead import Job
-from evojax_morph.search.confirm import Confirmed, confirm, lower_confirm, rank
-from evojax_morph.search.pipeline import Greedy, Pipeline, RunConfig
+from evojax_morph.run.resume import Start, confirm_skipped, confirms_now
+from evojax_morph.search.confirm import Confirmed, confirm, rank
+from evojax_morph.search.pipeline import Greedy, Pipeline, RunConfig, make_greedy_evaluation
 from evojax_morph.sharding import to_host
 
 CONFIRM_SALT = 0x636F6E66  # the confirm stage's key: fold_in(PRNGKey(seed), CONFIRM_SALT)
@@ -33,19 +32,8 @@ class Best(NamedTuple):
     fitness: float
     record: dict  # confirmed.json's
     top: Confirmed | None  # the confirmed best, when evaluated now
-    saved: list[str]  # the controllers saved
+    saved: dict  # the controllers saved, by name (None: kept from the first finish)
     greedy: Greedy | None  # the greedy trajectory, evaluated; None for the baselines
-
-
-def confirm_skipped(cfg: RunConfig) -> str | None:
-    """Why the confirm stage evaluates nothing (confirmed.json's note), None where it does: the
-    one place this is decided."""
-    if cfg.confirm == 0:
-        return "not run (--confirm 0): the best body is the highest single draw, a noisy maximum"
-    if get_fitness(cfg.fitness).deterministic:
-        return (f"not run: the {cfg.fitness} fitness is deterministic, so an evaluation again "
-                "gives the same values; the best body is the highest single draw")
-    return None
 
 
 def best_controllers(cfg: RunConfig, p: Pipeline) -> FitnessConfig:
@@ -55,37 +43,62 @@ def best_controllers(cfg: RunConfig, p: Pipeline) -> FitnessConfig:
         cfg.confirm_controllers)
 
 
-def kept_record(out: Path, cfg: RunConfig, step: int, log: dict | None) -> dict | None:
-    """confirmed.json's record where the run was confirmed at `step` with these settings from
-    the body log whose proof the restored checkpoint holds (`log`; None: none restored), so a
-    --resume of a finished run does not do it again; else None (another run's file, or one of
-    a log since gone on). Raises `Damaged` where the file does not read."""
-    done = out / "confirmed.json"
-    if not done.exists():
-        return None
-    before = checkpoints.read_sealed(done)
-    now = {"env_steps": step, "bodies": cfg.confirm, "controllers": cfg.confirm_controllers,
-           "log": log}
-    return before if log is not None and all(before.get(k) == v for k, v in now.items()) else None
+class Confirm:
+    """The confirm stage of `run` (`driver.Run`) that began at `start`."""
 
+    def __init__(self, run, start: Start):
+        self.run, self.start = run, start
+        self.now = confirms_now(run.cfg, start)
+        # the greedy bodies' own fitness call: where the stage evaluates nothing now and no
+        # kept results of theirs (`kept_greedy`: a finished run resumed keeps them)
+        walks = run.p.agent.scores is not None
+        self.apart = walks and (confirm_skipped(run.cfg) is not None or (
+            start.kept is not None and not start.kept.get("greedy")))
+        self.evaluation = make_greedy_evaluation(run.p) if walks else None
 
-def confirms_now(run, step: int) -> bool:
-    """Whether the confirm stage of `run` (`driver.Run`) ending at `step` evaluates bodies:
-    not skipped (`confirm_skipped`), not kept (`kept_record`). Then the greedy trajectory's
-    bodies join its fitness call; else they have one of their own
-    (`pipeline.make_greedy_evaluation`)."""
-    return not confirm_skipped(run.cfg) and kept_record(run.out, run.cfg, step,
-                                                        run.resumed_log) is None
+    def programs(self) -> list[Job]:
+        """The stage's one fitness call: cfg.confirm bodies and the greedy trajectory's, C
+        times each; or the greedy bodies' call of their own."""
+        p, cfg = self.run.p, self.run.cfg
+        if self.apart:
+            return [Job("greedy evaluation", lambda: self.evaluation.lower(self.run.key_greedy))]
+        if not self.now:
+            return []
+        n = (cfg.confirm + greedy_bodies(p)) * cfg.confirm_controllers
+        return [Job("confirm", lambda: lower_evaluate(p.space, n, p.fitness.with_controllers(1)))]
 
-
-def greedy_apart(run, step: int) -> bool:
-    """Whether the greedy trajectory's bodies need a fitness call of their own at `step`: where
-    the confirm stage evaluates nothing now (`confirms_now`) and confirmed.json keeps no
-    results of theirs (`kept_greedy`: a finished run resumed keeps them)."""
-    if confirm_skipped(run.cfg):
-        return True
-    kept = kept_record(run.out, run.cfg, step, run.resumed_log)  # None: confirms now, with it
-    return kept is not None and not kept.get("greedy")
+    def run_stage(self, evolved, record, ahead, clock) -> Best:
+        """The bodies of the log confirmed with the walked greedy trajectory's in one fitness
+        call (`confirm_record`), or, where it confirms nothing now, the greedy trajectory
+        evaluated alone; the run's best chosen (`reported_best`), its and the greedy
+        trajectory's controllers saved, and confirmed.json written (if confirmed now); every
+        process calls it."""
+        run, begin = self.run, self.start
+        p, cfg, state, greedy = run.p, run.cfg, evolved.state, evolved.greedy
+        draw = to_host((state.best_morph, state.best_fitness, state.best_params))
+        ahead.wait("confirm")
+        record_, top, joined = confirm_record(
+            p, cfg, evolved.step, evolved.candidates, None if greedy is None else greedy.morphs,
+            begin.kept, begin.stale, run.log)
+        if joined is not None:
+            greedy = greedy_confirmed(greedy, joined)
+        elif greedy is not None:
+            greedy = kept_greedy(record_, greedy, p.space)
+            if greedy is None:
+                ahead.wait("greedy evaluation")
+                greedy = self.evaluation(evolved.greedy, run.key_greedy)
+        clock.phase("confirm")
+        ahead.close()  # best.gif's replay and GL
+        best, best_fitness, best_params, best_cfg = reported_best(
+            p, record_, top, (draw[0], float(draw[1]), draw[2]), begin.kept_best)
+        saved = save_controllers(p, cfg.seed, best, best_fitness, best_params, greedy, best_cfg)
+        record.controllers(saved)
+        clock.phase("controllers")
+        if top is not None:  # written last: the stage is done, a --resume keeps it
+            record_["best_morphology"] = best.to_dict()
+            record_["log"] = evolved.log  # whose bodies: a --resume keeps it for this log alone
+            record.confirmed(record_)
+        return Best(best, best_fitness, record_, top, saved, greedy)
 
 
 def kept_greedy(record: dict, greedy: Greedy, space) -> Greedy | None:
@@ -105,63 +118,22 @@ def greedy_bodies(p: Pipeline) -> int:
     return 0 if p.agent.scores is None else p.greedy_env.horizon + 1
 
 
-def confirm_jobs(run, step: int) -> list[Job]:
-    """The confirm stage's one fitness call at `step`, where it makes one, for compiling ahead:
-    cfg.confirm bodies and the greedy trajectory's, C times each."""
-    cfg, p = run.cfg, run.p
-    bodies = cfg.confirm + greedy_bodies(p)
-    return [Job("confirm", lambda: lower_confirm(
-        p.space, bodies, p.fitness, cfg.confirm_controllers))] if confirms_now(run, step) else []
-
-
-def confirm_stage(run, evolved, ahead, clock) -> Best:
-    """The confirm stage, from the earlier stages' results `run` (`driver.Run`) and `evolved`
-    (`driver.Evolved`): the bodies of the log confirmed with the walked greedy trajectory's in
-    one fitness call (`confirm_record`), or, where it confirms nothing now, the greedy
-    trajectory evaluated alone (`pipeline.make_greedy_evaluation`); the run's best chosen
-    (`reported_best`), its and the greedy trajectory's controllers saved, and confirmed.json
-    written (if confirmed now, lead process); every process calls it."""
-    p, cfg, state, greedy = run.p, run.cfg, evolved.state, evolved.greedy
-    draw = to_host((state.best_morph, state.best_fitness, state.best_params))
-    ahead.wait("confirm")
-    record, top, joined = confirm_record(run.out, p, cfg, evolved.step, run.log,
-                                         None if greedy is None else greedy.morphs,
-                                         run.resumed_log)
-    if joined is not None:
-        greedy = greedy_confirmed(greedy, joined)
-    elif greedy is not None:
-        greedy = (kept_greedy(record, greedy, p.space)
-                  or run.greedy_evaluation(greedy, run.key_greedy))
-    clock.phase("confirm")
-    ahead.close()  # best.gif's replay and GL
-    best, best_fitness, best_params, best_cfg = reported_best(
-        run.out, p, record, top, (draw[0], float(draw[1]), draw[2]))
-    saved = save_controllers(run.out, p, cfg.seed, best, best_fitness, best_params,
-                             greedy, best_cfg)
-    clock.phase("controllers")
-    if top is not None and run.lead:  # written last: the stage is done, a --resume keeps it
-        record["best_morphology"] = best.to_dict()
-        record["log"] = evolved.log  # whose bodies: a --resume keeps it for this log alone
-        checkpoints.write_atomic(run.out / "confirmed.json",
-                                 json.dumps(checkpoints.seal(record), indent=1))
-    return Best(best, best_fitness, record, top, saved, greedy)
-
-
-def confirm_record(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print,
-                   greedy: list | None = None, resumed_log: dict | None = None):
+def confirm_record(p: Pipeline, cfg: RunConfig, step: int, candidates: list,
+                   greedy: list | None = None, kept: dict | None = None, stale: bool = False,
+                   log=print):
     """The bodies of a run's log confirmed, the greedy trajectory's `greedy` in the same call;
-    every process calls it, after the body log is written.
+    every process calls it.
 
-    The `cfg.confirm` distinct bodies of the highest mean in the body log (`bodylog.
-    best_bodies`: ties to the body evaluated more often, then to the one seen first), then the
-    bodies `greedy`, are each evaluated `cfg.confirm_controllers` times from scratch, in one
-    fitness call (`confirm`): fresh controllers, no inheritance, keys from
-    `fold_in(PRNGKey(seed), CONFIRM_SALT)`, which no other part of the run uses. The greedy
-    bodies only ride along (one call's latency instead of two, issue 61): they enter neither
-    the record nor the choice of the best. Skipped, with a note saying why (`confirm_skipped`);
-    not done again when confirmed.json says it was done at this step with these settings, from
-    the body log the restored checkpoint proves (`resumed_log`; `kept_record`: a --resume of a
-    finished run).
+    The `cfg.confirm` distinct bodies of the highest mean in the body log (`candidates`:
+    (`bodylog.best_bodies` entry, shape JSON) pairs, best first: ties to the body evaluated
+    more often, then to the one seen first), then the bodies `greedy`, are each evaluated
+    `cfg.confirm_controllers` times from scratch, in one fitness call (`confirm`): fresh
+    controllers, no inheritance, keys from `fold_in(PRNGKey(seed), CONFIRM_SALT)`, which no
+    other part of the run uses. The greedy bodies only ride along (one call's latency instead
+    of two, issue 61): they enter neither the record nor the choice of the best. Skipped, with a
+    note saying why (`confirm_skipped`); not done again where confirmed.json was `kept` from
+    the run's finish at this step with these settings and this log (a --resume of a finished
+    run); `stale`: a confirmed.json that is not is there (it is written again).
 
     Returns:
       (record, top, joined): record is what confirmed.json keeps (env_steps, bodies,
@@ -171,11 +143,10 @@ def confirm_record(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print,
     """
     n, c = cfg.confirm, cfg.confirm_controllers
     record = {"env_steps": step, "bodies": n, "controllers": c, "confirmed": []}
-    before = kept_record(out, cfg, step, resumed_log)
-    if before is not None:
+    if kept is not None:
         log("confirm: done when the run finished, kept (confirmed.json)")
-        return before, None, None
-    if (out / "confirmed.json").exists():
+        return kept, None, None
+    if stale:
         log("confirm: confirmed.json is not of this body log at this step with these settings, "
             "so the bodies are confirmed again")
     record["confirm_note"] = confirm_skipped(cfg)
@@ -183,19 +154,12 @@ def confirm_record(out: Path, p: Pipeline, cfg: RunConfig, step: int, log=print,
         if n:  # --confirm 0 said so itself
             log(f"confirm: {record['confirm_note']}")
         return record, None, None
-    path = out / "bodies.sqlite"
-    ranked = bodylog.best_bodies(path, n)
-    shapes = bodylog.shapes(path, p.space, [b["body"] for b in ranked])
-    missing = [b["body"] for b in ranked if b["body"] not in shapes]
-    if missing:  # every run that can reach this stage keeps each body's shape in its log
-        raise checkpoints.Damaged(f"{path}: no shape kept for the body log's "
-                                  f"{', '.join(missing)} (a damaged log): the run cannot "
-                                  "confirm it")
+    ranked = [entry for entry, _ in candidates]
     also = "" if not greedy else f", with the greedy trajectory's {len(greedy)} bodies"
     log(f"confirm: the {len(ranked)} bodies of the highest mean{also}, {c} fresh evaluations "
         "each...")
     key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), CONFIRM_SALT)
-    bodies = [shapes[b["body"]] for b in ranked] + list(greedy or [])
+    bodies = [p.space.from_json(shape) for _, shape in candidates] + list(greedy or [])
     morphs = jax.tree.map(lambda *x: np.stack(x), *bodies)
     every = confirm(p.space, morphs, key, p.fitness, c, ranked=False)
     found, joined = rank(every[:len(ranked)]), every[len(ranked):]
@@ -260,14 +224,15 @@ def gait_entry(found: Confirmed) -> dict:
     }
 
 
-def reported_best(out: Path, p: Pipeline, record: dict, top: Confirmed | None, draw: tuple):
+def reported_best(p: Pipeline, record: dict, top: Confirmed | None, draw: tuple,
+                  kept_best=None):
     """The body a run reports as its best: (morph, fitness, controllers, their fitness config),
     chosen here alone.
 
     The confirmed best `top` with its C fresh controllers, best first (best.gif replays the
-    0th); else the best of `record` confirmed when the run first finished (its controllers read
-    back from controllers/best); else, nothing confirmed, `draw`: the highest single draw's
-    (morph, fitness, controllers).
+    0th); else the best of `record` confirmed when the run first finished (its controllers
+    `kept_best`, read back from controllers/best: `resume.start`); else, nothing confirmed,
+    `draw`: the highest single draw's (morph, fitness, controllers).
     """
     if top is not None:
         params = best_first(top)
@@ -275,33 +240,32 @@ def reported_best(out: Path, p: Pipeline, record: dict, top: Confirmed | None, d
         return top.morph, top.mean, params, cfg
     if record["confirmed"]:
         morph = Morphology.from_dict(record["best_morphology"])
-        if not saved_controllers.has_controllers(p.fitness):
+        if kept_best is None:  # a fitness that trains no controllers
             return morph, record["confirmed"][0]["mean"], None, p.fitness
-        kept = saved_controllers.load(out / saved_controllers.DIR / "best")
-        return morph, record["confirmed"][0]["mean"], kept.params, kept.fitness
+        return morph, record["confirmed"][0]["mean"], kept_best.params, kept_best.fitness
     return (*draw, p.fitness)
 
 
-def save_controllers(out: Path, p: Pipeline, seed: int, best, best_fitness: float, best_params,
-                     greedy: Greedy | None, best_cfg=None) -> list[str]:
-    """controllers/best and controllers/stepT for the evaluated greedy trajectory's bodies, for
-    a fitness that trains controllers; every process calls it. best_cfg: the fitness config the
-    best body's controllers were trained under (default the run's; the confirm stage's has C
-    controllers); the greedy bodies' has `greedy.controllers` (None: the run's). Returns the
-    names saved."""
+def save_controllers(p: Pipeline, seed: int, best, best_fitness: float, best_params,
+                     greedy: Greedy | None, best_cfg=None) -> dict:
+    """The controllers of the best body ("best") and of the evaluated greedy trajectory's
+    ("stepT"), for a fitness that trains controllers, by name; None for one kept from the
+    first finish (`kept_greedy`). best_cfg: the fitness config the best body's controllers
+    were trained under (default the run's; the confirm stage's has C controllers); the greedy
+    bodies' has `greedy.controllers` (None: the run's)."""
     if not saved_controllers.has_controllers(p.fitness):
-        return []
+        return {}
     bodies = [("best", best, best_params, best_fitness, best_cfg or p.fitness)]
     if greedy is not None:
         k = greedy.controllers
         greedy_cfg = p.fitness if k is None else p.fitness.with_controllers(k)
         bodies += [(f"step{t}", m, params, f, greedy_cfg) for t, (m, params, f)
-                   in enumerate(zip(greedy.morphs, greedy.params, greedy.fitness))]
+                   in enumerate(zip(greedy.morphs, greedy.params or [None] * len(greedy.morphs),
+                                    greedy.fitness))]
+    saved = {}
     for name, morph, params, fitness, fit_cfg in bodies:
-        if params is None and name != "best":  # kept from the first finish (`kept_greedy`)
-            continue
         label = name if name == "best" else f"step {name[4:]}"
-        saved = saved_controllers.SavedController(p.space, fit_cfg, seed, morph, params, fitness,
-                                                  label)
-        saved_controllers.save(out / saved_controllers.DIR / name, saved)
-    return [name for name, *_ in bodies]
+        saved[name] = None if params is None and name != "best" else (
+            saved_controllers.SavedController(p.space, fit_cfg, seed, morph, params, fitness,
+                                              label))
+    return saved

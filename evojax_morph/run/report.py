@@ -1,18 +1,16 @@
-"""The end of a run: its report, printed and written (summary.json, the plots, best.gif,
-timing.json), from the earlier stages' results (`driver`, `confirm_stage`)."""
+"""The end of a run: its report, printed and handed to the recorder (summary.json, the plots,
+best.gif, timing.json), from the earlier stages' results (`evolve`, `confirm_stage`)."""
 
 from __future__ import annotations
 
-import json
 import time
 
 import jax
 import numpy as np
 
-from evojax_morph.figures import plots, video
-from evojax_morph.fitnesses import FitnessConfig
-from evojax_morph.records.checkpoints import write_atomic
+from evojax_morph.figures import video
 from evojax_morph.run.compile_ahead import Job
+from evojax_morph.run.confirm_stage import best_controllers
 from evojax_morph.search.pipeline import Greedy
 from evojax_morph.tasks import gait_word
 
@@ -59,38 +57,46 @@ def walks(entry: dict, seconds: float) -> str:
             "its evaluations)")
 
 
-def report_jobs(run, shown: FitnessConfig) -> list[Job]:
-    """best.gif's replay of controllers trained under `shown` (those the confirm stage leaves,
-    `confirm_stage.best_controllers`) and its GL probes, for compiling ahead."""
-    if not (run.gif and run.lead):
-        return []
-    return [Job("replay", lambda: video.lower_replay(run.p.space, shown)),
-            Job("gl", video.choose_gl, own_thread=True)]
+class Report:
+    """The report stage of `run` (`driver.Run`), on the lead process."""
+
+    def __init__(self, run):
+        self.run = run
+
+    def programs(self) -> list[Job]:
+        """best.gif's replay of the controllers the confirm stage leaves
+        (`confirm_stage.best_controllers`) and its GL probes."""
+        run = self.run
+        if not (run.gif and run.lead):
+            return []
+        shown = best_controllers(run.cfg, run.p)
+        return [Job("replay", lambda: video.lower_replay(run.p.space, shown)),
+                Job("gl", video.choose_gl, own_thread=True)]
+
+    def run_stage(self, evolved, best, record, clock) -> None:
+        """The report from the earlier stages' results, `evolved` (`evolve.Evolved`) and
+        `best` (`confirm_stage.Best`), and their `clock` (`driver.Clock`): the results
+        (`write_results`), then timing.json, through the `record`er."""
+        run = self.run
+        write_results(run, evolved, best, record, clock.phase)
+        times = timing(time.perf_counter() - clock.started, evolved.chunk_seconds) | {
+            "phases": clock.phases, "first_chunk_dispatch": evolved.dispatch,
+            "chunk_seconds": [round(s, 2) for _, s in evolved.chunk_seconds],
+            "parts": clock.parts, "waits": clock.waits, "where": where(run.cfg)}
+        record.timing(times)
+        if times["step_seconds"]:
+            print(f"time: {times['seconds']:.0f} s, {times['step_seconds']:.3g} s a step, "
+                  f"{times['outside_steps_seconds']:.0f} s outside the steps (timing.json; "
+                  "imports not counted)")
 
 
-def report_stage(run, evolved, best, clock) -> None:
-    """The report stage, on the lead process, from the earlier stages' results: `run`
-    (`driver.Run`), `evolved` (`driver.Evolved`), `best` (`confirm_stage.Best`) and their `clock`
-    (`driver.Clock`): the results (`write_results`), then timing.json."""
-    write_results(run, evolved, best, clock.phase)
-    times = timing(time.perf_counter() - clock.started, evolved.chunk_seconds) | {
-        "phases": clock.phases, "first_chunk_dispatch": evolved.dispatch,
-        "chunk_seconds": [round(s, 2) for _, s in evolved.chunk_seconds],
-        "parts": clock.parts, "waits": clock.waits, "where": where(run.cfg)}
-    write_atomic(run.out / "timing.json", json.dumps(times, indent=1))
-    if times["step_seconds"]:
-        print(f"time: {times['seconds']:.0f} s, {times['step_seconds']:.3g} s a step, "
-              f"{times['outside_steps_seconds']:.0f} s outside the steps (timing.json; "
-              "imports not counted)")
-
-
-def write_results(run, evolved, best, phase=lambda name: None) -> None:
+def write_results(run, evolved, best, record, phase=lambda name: None) -> None:
     """summary.json and a printed digest of it, with the best bodies of the body log and the
     confirmed ones (with their gait: metres in an episode, and upright); curve.png, best.xml,
     trajectory.png (if the confirm stage evaluated a greedy trajectory), confirmed.png (if the
-    confirm stage's record confirmed bodies) and best.gif (if `run.gif`). `phase("results")`
-    is called before best.gif is drawn, `phase("best_gif")` after."""
-    out, space, greedy, saved = run.out, run.p.space, best.greedy, best.saved
+    confirm stage's record confirmed bodies) and best.gif (if `run.gif`), by the `record`er.
+    `phase("results")` is called before best.gif is drawn, `phase("best_gif")` after."""
+    space, greedy, saved = run.p.space, best.greedy, best.saved
     task = run.p.fitness.task
     episode_seconds = task.episode_length * task.frame_skip * space.template.opt.timestep
     k = None if greedy is None else greedy.controllers or run.p.fitness.ppo.controllers
@@ -106,26 +112,15 @@ def write_results(run, evolved, best, phase=lambda name: None) -> None:
             {"action": a, "fitness": f, "morphology": m.to_dict(), "controllers": k}
             for a, f, m in zip(["m0"] + greedy.actions, greedy.fitness, greedy.morphs)],
         "best_bodies": evolved.best_bodies,
-        "controllers": saved,
+        "controllers": list(saved),
     }
     print_summary(summary, space, best.morph, greedy, episode_seconds)
-    written = "curve.png best.xml summary.json metrics.csv bodies.sqlite tb/ checkpoints/"
+    written = " ".join(record.figures(summary, best.morph, greedy) + [
+        "curve.png best.xml summary.json metrics.csv bodies.sqlite tb/ checkpoints/"])
     written += " controllers/" if saved else ""
-    rows = evolved.rows
-    col = lambda name: np.array([r[name] for r in rows], float)  # noqa: E731  (resumed: strings)
-    plots.plot_curve(out / "curve.png", col("step"), col("reward_median"), col("reward_q25"),
-                     col("reward_q75"))
-    write_atomic(out / "best.xml", space.to_mjcf(best.morph))
-    if summary["confirmed"]:
-        plots.plot_confirmed(out / "confirmed.png", summary["confirmed"])
-        written = "confirmed.json confirmed.png " + written
-    if greedy is not None:
-        plots.plot_trajectory(out / "trajectory.png", space, greedy.morphs, greedy.fitness,
-                              greedy.actions)
-        written = "trajectory.png " + written
     phase("results")  # before best.gif, drawn last: a failing OpenGL leaves the rest written
     if run.gif:
-        shown = video.render(out, "best", mp4=False)
+        shown = record.video(saved["best"])
         for note in shown.notes:
             print(f"best.gif: {note}")
         moved = shown.replay.distance[-1]
@@ -135,8 +130,8 @@ def write_results(run, evolved, best, phase=lambda name: None) -> None:
     elif not saved:
         print("\nno controllers to keep: the fitness trains none (only ppo does), so no best.gif")
     phase("best_gif")
-    write_atomic(out / "summary.json", json.dumps(summary, indent=1))
-    print(f"\nwrote {out}/: {written}")
+    record.summary(summary)
+    print(f"\nwrote {run.out}/: {written}")
 
 
 def print_summary(summary: dict, space, best, greedy: Greedy | None,

@@ -20,7 +20,7 @@ import numpy as np
 import scipy.stats
 
 from evojax_morph.fitnesses import FitnessConfig
-from evojax_morph.fitnesses.batched import evaluate, lower_evaluate
+from evojax_morph.fitnesses.batched import evaluate
 from evojax_morph.morphology import Morphology
 from evojax_morph.ppo import Params
 from evojax_morph.sharding import to_host
@@ -74,12 +74,6 @@ def t_interval(values: np.ndarray, level: float = 0.95) -> tuple[float, float]:
     half = scipy.stats.t.ppf((1 + level) / 2, len(values) - 1) * values.std(ddof=1)
     half /= np.sqrt(len(values))
     return float(values.mean() - half), float(values.mean() + half)
-
-
-def lower_confirm(space: Space, bodies: int, cfg: FitnessConfig, controllers: int,
-                  mesh=None) -> list:
-    """The programs `confirm` compiles for `bodies` bodies, lowered for compiling ahead."""
-    return lower_evaluate(space, bodies * controllers, cfg.with_controllers(1), mesh)
 
 
 def confirm(

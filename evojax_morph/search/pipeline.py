@@ -181,7 +181,7 @@ def make_greedy_walk(p: Pipeline):
                  for a, before, after in zip(actions, bodies, bodies[1:])]
         return Greedy(morphs=bodies, fitness=None, actions=names, params=None)
 
-    def lower(learner, first, key):  # the abstract arguments (`driver._evolve_jobs`)
+    def lower(learner, first, key):  # the abstract arguments (`run.evolve.Evolve.programs`)
         return walk.lower(*jax.tree.map(_on(device), (learner, jax.eval_shape(env0, first),
                                                       key)))
 
@@ -213,7 +213,7 @@ def make_greedy_evaluation(p: Pipeline):
         return greedy._replace(fitness=[float(f) for f in fitness],
                                params=[_at(params, i) for i in range(n)], controllers=k)
 
-    def lower(key):  # the abstract key (`driver._evolve_jobs`)
+    def lower(key):  # the abstract key (`run.confirm_stage.Confirm.programs`)
         bodies = jax.eval_shape(lambda: jax.tree.map(
             lambda x: jnp.repeat(jnp.asarray(x)[None], n, 0), p.space.initial()))
         return greedy_fitness.lower(*jax.tree.map(_on(device), (bodies, key)))

@@ -1,0 +1,124 @@
+"""Where a run starts: m0, or for `--resume` what its directory holds, read back once.
+
+`start` is the one place a run reads its own directory: the newest checkpoint that reads, the
+body log and metrics.csv checked against it, and a confirmed.json that a finished run wrote
+(with the best body's controllers), which the confirm stage then keeps instead of confirming
+again. Everything later is handed on in memory (`Start`).
+"""
+
+from __future__ import annotations
+
+import csv
+import itertools
+from pathlib import Path
+from typing import Any, NamedTuple
+
+from evojax_morph.fitnesses import get_fitness
+from evojax_morph.records import bodylog, checkpoints, saved_controllers
+
+
+class Start(NamedTuple):
+    """Where the steps begin."""
+
+    step: int | None  # the restored checkpoint's step; None: from m0
+    state: Any  # the agent state restored (None: from m0)
+    rows: list[dict]  # metrics.csv's rows up to `step`
+    log: dict | None  # the body log's proof the checkpoint holds (None: none restored)
+    kept: dict | None  # confirmed.json's record where the run was confirmed at its end with
+    # these settings from this log (a --resume of a finished run); else None
+    kept_best: Any = None  # its best body's SavedController, for a fitness that trains them
+    stale: bool = False  # a confirmed.json is there that is not kept (it is confirmed again)
+
+
+def confirm_skipped(cfg) -> str | None:
+    """Why the confirm stage evaluates nothing (confirmed.json's note), None where it does: the
+    one place this is decided."""
+    if cfg.confirm == 0:
+        return "not run (--confirm 0): the best body is the highest single draw, a noisy maximum"
+    if get_fitness(cfg.fitness).deterministic:
+        return (f"not run: the {cfg.fitness} fitness is deterministic, so an evaluation again "
+                "gives the same values; the best body is the highest single draw")
+    return None
+
+
+def confirms_now(cfg, begin: Start) -> bool:
+    """Whether the confirm stage evaluates bodies: not skipped (`confirm_skipped`), not kept
+    from a finished run (`Start.kept`). Then the greedy trajectory's bodies join its fitness
+    call; else they have one of their own (`pipeline.make_greedy_evaluation`) unless kept."""
+    return not confirm_skipped(cfg) and begin.kept is None
+
+
+def start(run, resume: bool, abstract) -> Start:
+    """Where the run `run` (`driver.Run`) begins: m0, or with `resume` the newest checkpoint
+    of its directory that reads, restored to `abstract` (the agent state's shapes and
+    placement). Raises `checkpoints.Damaged` where a file it reads back is not the run's."""
+    out, cfg = run.out, run.cfg
+    stale = (out / "confirmed.json").exists()
+    if not resume:
+        return Start(None, None, [], None, None, stale=stale)
+    step, restored, _ = checkpoints.restore_newest(
+        out, lambda manager, step: checkpoints.restore_checked(manager, step, abstract), run.log)
+    if step is None:
+        run.log(f"--resume: {out} holds no checkpoint yet (the run stopped before its first), "
+                "so it starts again from m0")
+        state = log = None
+        rows = []
+    else:
+        state, log = restored[0], restored[1]["log"]
+        check_log(out / "bodies.sqlite", step, log)
+        rows = metrics_rows(out / "metrics.csv", step)
+    kept = kept_record(out, cfg, max(step or 0, cfg.steps), log)
+    best = None
+    if kept and kept["confirmed"] and saved_controllers.has_controllers(run.p.fitness):
+        best = saved_controllers.load(out / saved_controllers.DIR / "best")
+    return Start(step, state, rows, log, kept, best, stale and kept is None)
+
+
+def kept_record(out: Path, cfg, step: int, log: dict | None) -> dict | None:
+    """confirmed.json's record where the run was confirmed at `step` with these settings from
+    the body log whose proof the restored checkpoint holds (`log`; None: none restored), so a
+    --resume of a finished run does not do it again; else None (another run's file, or one of
+    a log since gone on). Raises `Damaged` where the file does not read."""
+    done = out / "confirmed.json"
+    if not done.exists():
+        return None
+    before = checkpoints.read_sealed(done)
+    now = {"env_steps": step, "bodies": cfg.confirm, "controllers": cfg.confirm_controllers,
+           "log": log}
+    return before if log is not None and all(before.get(k) == v for k, v in now.items()) else None
+
+
+def check_log(path: Path, step: int, saved: dict | None) -> None:
+    """Raises `checkpoints.Damaged` unless the body log `path` holds, up to `step`, the rows
+    whose proof the checkpoint of `step` recorded (`saved`; None: a process that kept no log):
+    a log deleted, emptied, cut short, edited or another run's is not resumed."""
+    if saved is None:
+        return
+    with checkpoints.read_error(str(path)):
+        found = bodylog.proof(path, step)
+    if found != saved:
+        what = (f"{found['rows']:,}" if found["rows"] != saved["rows"]
+                else "as many, with other values")
+        raise checkpoints.Damaged(
+            f"--resume: {str(path)!r} is not the body log checkpoint {step} was saved with "
+            f"({saved['rows']:,} evaluations up to step {step}; it holds {what}): the run "
+            "cannot go on from it (a log changed, damaged or of another run)")
+
+
+def metrics_rows(path: Path, step: int) -> list[dict]:
+    """The rows of steps 1 to `step` of metrics.csv `path`, which a resume from `step` keeps.
+    Raises `checkpoints.Damaged` where the file does not hold them whole (deleted, emptied,
+    cut short: a run resumed from it would end with rows missing); rows after `step` (the
+    steps the resume redoes) may be cut short."""
+    with checkpoints.read_error(str(path)), open(path, newline="") as f:
+        rows = list(itertools.islice(csv.DictReader(f), step))
+    whole = 0  # the rows of steps 1, 2, ... in order, every value there
+    for r in rows:
+        if None in r or None in r.values() or r.get("step") != str(whole + 1):
+            break
+        whole += 1
+    if whole < step:
+        raise checkpoints.Damaged(
+            f"--resume: {str(path)!r} does not hold the rows of steps 1 to {step} whole (it "
+            f"holds {whole}): the run cannot go on from it (a file changed or damaged)")
+    return rows
