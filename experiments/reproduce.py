@@ -47,8 +47,6 @@ from evojax_morph.search.pipeline import (
     NO_OP,
     agent_config,
     build,
-    make_greedy_evaluation,
-    make_greedy_walk,
 )
 from experiments.build_tables import revision
 from experiments.common import Setup, band, episode_returns, holm, plt, run_agent, run_config, save
@@ -180,7 +178,7 @@ def unroll(name: str, of: str, args) -> bool:
     g = groups(args)[of]
     p = build(run_config(g.agent, setup_of(g, args)))
     trained = pickle.loads(agents.read_bytes())
-    walk, evaluate = make_greedy_walk(p), make_greedy_evaluation(p)  # as a run does
+    walk, evaluate = p.greedy_walk, p.greedy_evaluation  # as a run does
     unrolls = []
     for seed in range(g.seeds):
         learner, first = jax.tree.map(lambda x, s=seed: x[s], (trained["learner"],

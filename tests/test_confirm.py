@@ -120,6 +120,7 @@ def test_the_greedy_trajectory_joins_the_confirm_call(walker, tmp_path, monkeypa
     confirmed bodies (confirmed.json, the best body) are the body log's alone; a --resume of
     the finished run keeps the trajectory's results and evaluates nothing."""
     from evojax_morph.search import confirm as confirm_module
+    from evojax_morph.search import pipeline
 
     space = walker[0]
     calls, evaluate = [], confirm_module.evaluate
@@ -133,7 +134,7 @@ def test_the_greedy_trajectory_joins_the_confirm_call(walker, tmp_path, monkeypa
         return lambda *_: pytest.fail("the greedy bodies evaluated in a call of their own")
 
     monkeypatch.setattr(confirm_module, "evaluate", counted)
-    monkeypatch.setattr(confirming, "make_greedy_evaluation", apart)
+    monkeypatch.setattr(pipeline, "make_greedy_evaluation", apart)
     n, h, c = 2, 2, 3
     out = tmp_path / "run"
     assert cli.main(["--space", "bad_walker", "--fitness", "table", "--num-envs", "4",

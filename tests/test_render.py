@@ -188,7 +188,8 @@ def test_confirmed_best_keeps_its_fresh_controllers(run_dir, tmp_path):
     for saved, trained in zip(jax.tree.leaves(kept.params), jax.tree.leaves(top.params)):
         np.testing.assert_array_equal(saved, trained[order])
     record["best_morphology"] = best.to_dict()  # as confirmed.json keeps it
-    again = confirming.reported_best(p, record, None, None, kept)
+    again = confirming.reported_best(
+        p, record, None, None, (em.Morphology.from_dict(record["best_morphology"]), kept))
     assert space.canonical(again[0]) == top.body and again[3] == best_cfg
     for x, y in zip(jax.tree.leaves(again[2]), jax.tree.leaves(kept.params)):
         np.testing.assert_array_equal(x, y)

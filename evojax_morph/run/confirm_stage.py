@@ -17,9 +17,9 @@ from evojax_morph.fitnesses.batched import lower_evaluate
 from evojax_morph.morphology import Morphology
 from evojax_morph.records import saved_controllers
 from evojax_morph.run.compile_ahead import Job
-from evojax_morph.run.resume import Start, confirm_skipped, confirms_now
+from evojax_morph.run.resume import Start, confirm_skipped
 from evojax_morph.search.confirm import Confirmed, confirm, rank
-from evojax_morph.search.pipeline import Greedy, Pipeline, RunConfig, make_greedy_evaluation
+from evojax_morph.search.pipeline import Greedy, Pipeline, RunConfig
 from evojax_morph.sharding import to_host
 
 CONFIRM_SALT = 0x636F6E66  # the confirm stage's key: fold_in(PRNGKey(seed), CONFIRM_SALT)
@@ -36,11 +36,10 @@ class Best(NamedTuple):
     greedy: Greedy | None  # the greedy trajectory, evaluated; None for the baselines
 
 
-def best_controllers(cfg: RunConfig, p: Pipeline) -> FitnessConfig:
+def best_controllers(cfg: RunConfig, p: Pipeline, start: Start) -> FitnessConfig:
     """The fitness config of the controllers `reported_best` leaves (best.gif replays them):
-    the confirm stage's C fresh ones, else the run's."""
-    return p.fitness if confirm_skipped(cfg) else p.fitness.with_controllers(
-        cfg.confirm_controllers)
+    the confirm stage's C fresh ones, else (`Start.skipped`) the run's."""
+    return p.fitness if start.skipped else p.fitness.with_controllers(cfg.confirm_controllers)
 
 
 class Confirm:
@@ -48,21 +47,19 @@ class Confirm:
 
     def __init__(self, run, start: Start):
         self.run, self.start = run, start
-        self.now = confirms_now(run.cfg, start)
         # the greedy bodies' own fitness call: where the stage evaluates nothing now and no
         # kept results of theirs (`kept_greedy`: a finished run resumed keeps them)
-        walks = run.p.agent.scores is not None
-        self.apart = walks and (confirm_skipped(run.cfg) is not None or (
+        self.apart = run.p.greedy_walk is not None and (start.skipped is not None or (
             start.kept is not None and not start.kept.get("greedy")))
-        self.evaluation = make_greedy_evaluation(run.p) if walks else None
 
     def programs(self) -> list[Job]:
         """The stage's one fitness call: cfg.confirm bodies and the greedy trajectory's, C
         times each; or the greedy bodies' call of their own."""
         p, cfg = self.run.p, self.run.cfg
         if self.apart:
-            return [Job("greedy evaluation", lambda: self.evaluation.lower(self.run.key_greedy))]
-        if not self.now:
+            return [Job("greedy evaluation", lambda: p.greedy_evaluation.lower(
+                self.run.key_greedy))]
+        if not self.start.confirms:
             return []
         n = (cfg.confirm + greedy_bodies(p)) * cfg.confirm_controllers
         return [Job("confirm", lambda: lower_evaluate(p.space, n, p.fitness.with_controllers(1)))]
@@ -79,14 +76,14 @@ class Confirm:
         ahead.wait("confirm")
         record_, top, joined = confirm_record(
             p, cfg, evolved.step, evolved.candidates, None if greedy is None else greedy.morphs,
-            begin.kept, begin.stale, run.log)
+            begin, run.log)
         if joined is not None:
             greedy = greedy_confirmed(greedy, joined)
         elif greedy is not None:
             greedy = kept_greedy(record_, greedy, p.space)
             if greedy is None:
                 ahead.wait("greedy evaluation")
-                greedy = self.evaluation(evolved.greedy, run.key_greedy)
+                greedy = p.greedy_evaluation(evolved.greedy, run.key_greedy)
         clock.phase("confirm")
         ahead.close()  # best.gif's replay and GL
         best, best_fitness, best_params, best_cfg = reported_best(
@@ -119,8 +116,7 @@ def greedy_bodies(p: Pipeline) -> int:
 
 
 def confirm_record(p: Pipeline, cfg: RunConfig, step: int, candidates: list,
-                   greedy: list | None = None, kept: dict | None = None, stale: bool = False,
-                   log=print):
+                   greedy: list | None = None, start: Start | None = None, log=print):
     """The bodies of a run's log confirmed, the greedy trajectory's `greedy` in the same call;
     every process calls it.
 
@@ -131,9 +127,10 @@ def confirm_record(p: Pipeline, cfg: RunConfig, step: int, candidates: list,
     controllers, no inheritance, keys from `fold_in(PRNGKey(seed), CONFIRM_SALT)`, which no
     other part of the run uses. The greedy bodies only ride along (one call's latency instead
     of two, issue 61): they enter neither the record nor the choice of the best. Skipped, with a
-    note saying why (`confirm_skipped`); not done again where confirmed.json was `kept` from
-    the run's finish at this step with these settings and this log (a --resume of a finished
-    run); `stale`: a confirmed.json that is not is there (it is written again).
+    note saying why (`Start.skipped`); not done again where confirmed.json was kept from the
+    run's finish at this step with these settings and this log (`Start.kept`: a --resume of a
+    finished run); `Start.stale`: a confirmed.json that is not is there (it is written again).
+    `start`: where the run began (default: from m0 in a new directory).
 
     Returns:
       (record, top, joined): record is what confirmed.json keeps (env_steps, bodies,
@@ -143,13 +140,14 @@ def confirm_record(p: Pipeline, cfg: RunConfig, step: int, candidates: list,
     """
     n, c = cfg.confirm, cfg.confirm_controllers
     record = {"env_steps": step, "bodies": n, "controllers": c, "confirmed": []}
-    if kept is not None:
+    start = start or Start(None, None, [], None, None, skipped=confirm_skipped(cfg))
+    if start.kept is not None:
         log("confirm: done when the run finished, kept (confirmed.json)")
-        return kept, None, None
-    if stale:
+        return start.kept, None, None
+    if start.stale:
         log("confirm: confirmed.json is not of this body log at this step with these settings, "
             "so the bodies are confirmed again")
-    record["confirm_note"] = confirm_skipped(cfg)
+    record["confirm_note"] = start.skipped
     if record["confirm_note"]:
         if n:  # --confirm 0 said so itself
             log(f"confirm: {record['confirm_note']}")
@@ -230,19 +228,19 @@ def reported_best(p: Pipeline, record: dict, top: Confirmed | None, draw: tuple,
     chosen here alone.
 
     The confirmed best `top` with its C fresh controllers, best first (best.gif replays the
-    0th); else the best of `record` confirmed when the run first finished (its controllers
-    `kept_best`, read back from controllers/best: `resume.start`); else, nothing confirmed,
-    `draw`: the highest single draw's (morph, fitness, controllers).
+    0th); else the best of `record` confirmed when the run first finished, `kept_best` (its
+    body and controllers read back: `Start.kept_best`); else, nothing confirmed, `draw`: the
+    highest single draw's (morph, fitness, controllers).
     """
     if top is not None:
         params = best_first(top)
         cfg = p.fitness if params is None else p.fitness.with_controllers(len(top.values))
         return top.morph, top.mean, params, cfg
     if record["confirmed"]:
-        morph = Morphology.from_dict(record["best_morphology"])
-        if kept_best is None:  # a fitness that trains no controllers
+        morph, saved = kept_best
+        if saved is None:  # a fitness that trains no controllers
             return morph, record["confirmed"][0]["mean"], None, p.fitness
-        return morph, record["confirmed"][0]["mean"], kept_best.params, kept_best.fitness
+        return morph, record["confirmed"][0]["mean"], saved.params, saved.fitness
     return (*draw, p.fitness)
 
 

@@ -95,19 +95,18 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
     """The run as stages: build, evolve (from m0 or a checkpoint), confirm, report."""
     clock = Clock(ahead.waited)
     record = Recorder(out, lead=jax.process_index() == 0)
-    if not resume:
-        record.config(cfg)
     run, abstract = _build(cfg, out, gif)
     begin = start(run, resume, abstract)
-    if resume:  # a checkpoint reads (or there is none): the run goes on under this config
-        record.config(cfg)
-    record.open(run.p.space)
+    record.open(cfg, run.p.space)  # a checkpoint reads, or none is to: it goes on under cfg
     clock.part("build")
+    # The stages, each with its programs queued before m0's evaluation (begun after its
+    # lowering).
     evolve = Evolve(run, begin, abstract)
+    ahead.collect(evolve.programs())
     confirm = Confirm(run, begin)
-    report = Report(run)
-    # The stages' programs, queued before m0's evaluation, begun after its lowering.
-    ahead.collect(evolve.programs() + confirm.programs() + report.programs())
+    ahead.collect(confirm.programs())
+    report = Report(run, begin)
+    ahead.collect(report.programs())
     try:
         with checkpoints.saving(out / "checkpoints"):
             evolved = evolve.run_stage(record, ahead, clock)

@@ -9,8 +9,8 @@ from typing import NamedTuple
 
 from evojax_morph.physics.engines import registered
 from evojax_morph.run.compile_ahead import Job
-from evojax_morph.run.resume import Start, confirms_now
-from evojax_morph.search.pipeline import Greedy, make_greedy_walk
+from evojax_morph.run.resume import Start
+from evojax_morph.search.pipeline import Greedy
 from evojax_morph.sharding import batch_mesh, to_host
 
 
@@ -35,9 +35,8 @@ class Evolve:
 
     def __init__(self, run, start: Start, abstract):
         self.run, self.start, self.abstract = run, start, abstract
-        # None for the baselines: no policy to roll out
-        self.walk = None if run.p.agent.scores is None else make_greedy_walk(run.p)
-        self.confirm = run.cfg.confirm if confirms_now(run.cfg, start) else 0  # bodies to take
+        self.walk = run.p.greedy_walk  # None for the baselines: no policy to roll out
+        self.confirm = run.cfg.confirm if start.confirms else 0  # bodies it takes from the log
 
     def programs(self) -> list[Job]:
         """The chunks of the sizes the steps take, then the greedy walk."""

@@ -29,18 +29,15 @@ class Recorder:
         self.space = self.manager = self.log = self._tb = None
         self.rows: list[dict] = []  # metrics.csv's, in memory and on disk alike
 
-    def open(self, space) -> None:
-        """The checkpoints and the body log of a run of `space`, once it knows where it starts
-        (`resume.start` reads them first)."""
-        self.space = space
-        _, self.manager = checkpoints.checkpoint_manager(self.out)  # Orbax's CheckpointManager
-        self.log = bodylog.BodyLog(self.out / "bodies.sqlite", space) if self.lead else None
-
-    def config(self, cfg) -> None:
-        """config.json: the settings the run goes on under."""
+    def open(self, cfg, space) -> None:
+        """config.json, the settings the run goes on under; the checkpoints and the body log
+        of its `space`. Once it knows where it starts (`resume.start` reads them first)."""
         if self.lead:
             checkpoints.write_atomic(self.out / "config.json",
                                      json.dumps(dataclasses.asdict(cfg), indent=1))
+        self.space = space
+        _, self.manager = checkpoints.checkpoint_manager(self.out)  # Orbax's CheckpointManager
+        self.log = bodylog.BodyLog(self.out / "bodies.sqlite", space) if self.lead else None
 
     def begin(self, step: int, rows: list[dict], first=None) -> None:
         """The steps begin after `step` (-1 with `first`, m0 evaluated in every evolution,

@@ -58,10 +58,11 @@ def walks(entry: dict, seconds: float) -> str:
 
 
 class Report:
-    """The report stage of `run` (`driver.Run`), on the lead process."""
+    """The report stage of `run` (`driver.Run`) that began at `start` (`resume.Start`), on
+    the lead process."""
 
-    def __init__(self, run):
-        self.run = run
+    def __init__(self, run, start):
+        self.run, self.start = run, start
 
     def programs(self) -> list[Job]:
         """best.gif's replay of the controllers the confirm stage leaves
@@ -69,7 +70,7 @@ class Report:
         run = self.run
         if not (run.gif and run.lead):
             return []
-        shown = best_controllers(run.cfg, run.p)
+        shown = best_controllers(run.cfg, run.p, self.start)
         return [Job("replay", lambda: video.lower_replay(run.p.space, shown)),
                 Job("gl", video.choose_gl, own_thread=True)]
 

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from evojax_morph.fitnesses import get_fitness
+from evojax_morph.morphology import Morphology
 from evojax_morph.records import bodylog, checkpoints, saved_controllers
 
 
@@ -26,8 +27,17 @@ class Start(NamedTuple):
     log: dict | None  # the body log's proof the checkpoint holds (None: none restored)
     kept: dict | None  # confirmed.json's record where the run was confirmed at its end with
     # these settings from this log (a --resume of a finished run); else None
-    kept_best: Any = None  # its best body's SavedController, for a fitness that trains them
+    kept_best: Any = None  # its best body (`Morphology`) and SavedController (None for a
+    # fitness that trains no controllers)
     stale: bool = False  # a confirmed.json is there that is not kept (it is confirmed again)
+    skipped: str | None = None  # why the confirm stage evaluates nothing (`confirm_skipped`)
+
+    @property
+    def confirms(self) -> bool:
+        """Whether the confirm stage evaluates bodies: not skipped, not kept from a finished
+        run. Then the greedy trajectory's bodies join its fitness call; else they have one of
+        their own (`pipeline.make_greedy_evaluation`) unless kept."""
+        return self.skipped is None and self.kept is None
 
 
 def confirm_skipped(cfg) -> str | None:
@@ -41,21 +51,14 @@ def confirm_skipped(cfg) -> str | None:
     return None
 
 
-def confirms_now(cfg, begin: Start) -> bool:
-    """Whether the confirm stage evaluates bodies: not skipped (`confirm_skipped`), not kept
-    from a finished run (`Start.kept`). Then the greedy trajectory's bodies join its fitness
-    call; else they have one of their own (`pipeline.make_greedy_evaluation`) unless kept."""
-    return not confirm_skipped(cfg) and begin.kept is None
-
-
 def start(run, resume: bool, abstract) -> Start:
     """Where the run `run` (`driver.Run`) begins: m0, or with `resume` the newest checkpoint
     of its directory that reads, restored to `abstract` (the agent state's shapes and
     placement). Raises `checkpoints.Damaged` where a file it reads back is not the run's."""
     out, cfg = run.out, run.cfg
-    stale = (out / "confirmed.json").exists()
+    stale, skipped = (out / "confirmed.json").exists(), confirm_skipped(cfg)
     if not resume:
-        return Start(None, None, [], None, None, stale=stale)
+        return Start(None, None, [], None, None, stale=stale, skipped=skipped)
     step, restored, _ = checkpoints.restore_newest(
         out, lambda manager, step: checkpoints.restore_checked(manager, step, abstract), run.log)
     if step is None:
@@ -69,9 +72,11 @@ def start(run, resume: bool, abstract) -> Start:
         rows = metrics_rows(out / "metrics.csv", step)
     kept = kept_record(out, cfg, max(step or 0, cfg.steps), log)
     best = None
-    if kept and kept["confirmed"] and saved_controllers.has_controllers(run.p.fitness):
-        best = saved_controllers.load(out / saved_controllers.DIR / "best")
-    return Start(step, state, rows, log, kept, best, stale and kept is None)
+    if kept and kept["confirmed"]:
+        best = Morphology.from_dict(kept["best_morphology"]), (
+            saved_controllers.load(out / saved_controllers.DIR / "best")
+            if saved_controllers.has_controllers(run.p.fitness) else None)
+    return Start(step, state, rows, log, kept, best, stale and kept is None, skipped)
 
 
 def kept_record(out: Path, cfg, step: int, log: dict | None) -> dict | None:

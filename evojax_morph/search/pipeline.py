@@ -1,8 +1,8 @@
 """A whole run assembled from its config: space -> fitness -> evolution env -> agent.
 
 `build(cfg)` is the one place that puts a run together: the `run` command, the experiments and
-the tests that need a whole pipeline all call it. The greedy rollout reads a trained agent's
-choices from m0.
+the tests that need a whole pipeline all call it. Its greedy walk reads a trained agent's
+choices from m0, and its greedy evaluation measures the bodies walked.
 """
 
 from __future__ import annotations
@@ -92,6 +92,9 @@ class Pipeline(NamedTuple):
     env: EvolutionEnv  # num_envs parallel evolutions
     agent: Agent  # init, chunk, scores
     greedy_env: EvolutionEnv  # the same with one evolution, for the greedy rollout
+    greedy_walk: Callable | None = None  # `make_greedy_walk`'s; None for the baselines: no
+    # policy to roll out
+    greedy_evaluation: Callable | None = None  # `make_greedy_evaluation`'s (None: baselines)
 
 
 def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
@@ -115,7 +118,10 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     # no cross-device communication (split over 2 GPUs with Warp it hung, docs/benchmarks.md).
     one = make_fitness_fn(space, fit_cfg, batch_mesh(jax.local_devices()[:1]))[1]
     greedy_env = dataclasses.replace(env, num_envs=1, fitness_fn=one)
-    return Pipeline(space, fit_cfg, env.init_fn, env.fitness_fn, env, agent, greedy_env)
+    p = Pipeline(space, fit_cfg, env.init_fn, env.fitness_fn, env, agent, greedy_env)
+    if agent.scores is None:  # a baseline: no policy to roll out
+        return p
+    return p._replace(greedy_walk=make_greedy_walk(p), greedy_evaluation=make_greedy_evaluation(p))
 
 
 class Greedy(NamedTuple):
