@@ -113,8 +113,9 @@ def data_files(checkpoint: Path) -> list[Path]:
 def run_shape(out: Path, printed: str) -> dict:
     """What a run leaves and prints, less what its numbers decide: the files by name, the keys
     and types of its JSON files (timing.json's keys), metrics.csv's columns and the printed
-    lines, each number a #, each body BODY and each mutation MUTATION, a body's drawing and the
-    progress bar left out. Comparable across CPUs, which round a run's numbers differently."""
+    lines, each number a #, each body BODY and each mutation MUTATION, a table's rows as one,
+    a body's drawing, the progress bar and what OpenGL there is left out. Comparable across
+    CPUs, which round a run's numbers differently, and machines."""
 
     def skeleton(x):
         if isinstance(x, dict):
@@ -129,7 +130,10 @@ def run_shape(out: Path, printed: str) -> dict:
         line = " ".join(number.sub("#", line).split())
         line = re.sub(r"#@\S*(?: #@\S*)*", "BODY", line)  # a body's canonical name
         line = re.sub(r"node #: \S+( \(no-op\))?", "node #: MUTATION", line)
-        if line and not line.startswith(("├", "└", "│", "#: ", "time: ")) and "|" not in line:
+        line = re.sub(r"drawn by [^:]*:", "drawn by GL:", line)  # the machine's OpenGL
+        line = re.sub(r"^confirmed best \w+", "confirmed best GAIT", line)  # walks or moves
+        if line and not line.startswith(("├", "└", "│", "#: ", "time: ", "best.gif: ")) \
+                and "|" not in line and line != (lines or [None])[-1]:  # a table's rows as one
             lines.append(line)
     files = sorted(p.name + "/" * p.is_dir() for p in out.iterdir())
     shape = {"files": files, "printed": lines,

@@ -748,6 +748,20 @@ def test_a_run_compiles_its_later_programs_ahead(tmp_path, caplog, capsys, confi
         stored[f"table, --confirm {confirm}"]
 
 
+@pytest.mark.slow  # a PPO run, its confirm stage and best.gif: about 2 minutes on 2 cores
+def test_a_ppo_run_leaves_the_files_and_lines_it_did(tmp_path, capsys):
+    """A run of the PPO fitness (2 steps, a confirm stage, best.gif) leaves the files and
+    prints the lines it did before its stages handed values in memory
+    (tests/data/run_shape.json: `run_shape` of this run at 8cf9bc6)."""
+    out = tmp_path / "run"
+    assert cli.main(["--space", "bad_walker", "--fitness", "ppo", "--num-envs", "2", "--steps",
+                     "2", "--chunk", "1", "--train-steps", "256", "--explore-steps", "2",
+                     "--learning-starts", "2", "--confirm", "2", "--confirm-controllers", "2",
+                     "--seed", "1", "--out", str(out)]) == 0
+    stored = json.loads((Path(__file__).parent / "data" / "run_shape.json").read_text())
+    assert run_shape(out, capsys.readouterr().out) == stored["ppo, --confirm 2"]
+
+
 def test_with_warp_on_a_gpu_the_warmup_thread_only_lowers(caplog):
     """`compiles` False (what a run sets with MuJoCo Warp on a GPU): the thread lowers, `wait`
     compiles on the calling thread, and the call finds the program compiled."""

@@ -36,17 +36,15 @@ class Best(NamedTuple):
     greedy: Greedy | None  # the greedy trajectory, evaluated; None for the baselines
 
 
-def best_controllers(cfg: RunConfig, p: Pipeline, start: Start) -> FitnessConfig:
-    """The fitness config of the controllers `reported_best` leaves (best.gif replays them):
-    the confirm stage's C fresh ones, else (`Start.skipped`) the run's."""
-    return p.fitness if start.skipped else p.fitness.with_controllers(cfg.confirm_controllers)
-
-
 class Confirm:
     """The confirm stage of `run` (`driver.Run`) that began at `start`."""
 
     def __init__(self, run, start: Start):
         self.run, self.start = run, start
+        p = run.p  # the fitness config of the controllers `reported_best` leaves (best.gif
+        # replays them): the stage's C fresh ones, else (`Start.skipped`) the run's
+        self.shown: FitnessConfig = p.fitness if start.skipped else p.fitness.with_controllers(
+            run.cfg.confirm_controllers)
         # the greedy bodies' own fitness call: where the stage evaluates nothing now and no
         # kept results of theirs (`kept_greedy`: a finished run resumed keeps them)
         self.apart = run.p.greedy_walk is not None and (start.skipped is not None or (

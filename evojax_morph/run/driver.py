@@ -105,7 +105,7 @@ def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) 
     ahead.collect(evolve.programs())
     confirm = Confirm(run, begin)
     ahead.collect(confirm.programs())
-    report = Report(run, begin)
+    report = Report(run, confirm.shown)
     ahead.collect(report.programs())
     try:
         with checkpoints.saving(out / "checkpoints"):

@@ -10,7 +10,6 @@ import numpy as np
 
 from evojax_morph.figures import video
 from evojax_morph.run.compile_ahead import Job
-from evojax_morph.run.confirm_stage import best_controllers
 from evojax_morph.search.pipeline import Greedy
 from evojax_morph.tasks import gait_word
 
@@ -58,19 +57,18 @@ def walks(entry: dict, seconds: float) -> str:
 
 
 class Report:
-    """The report stage of `run` (`driver.Run`) that began at `start` (`resume.Start`), on
-    the lead process."""
+    """The report stage of `run` (`driver.Run`), on the lead process; best.gif replays
+    controllers of the fitness config `shown` (those the confirm stage leaves,
+    `Confirm.shown`)."""
 
-    def __init__(self, run, start):
-        self.run, self.start = run, start
+    def __init__(self, run, shown):
+        self.run, self.shown = run, shown
 
     def programs(self) -> list[Job]:
-        """best.gif's replay of the controllers the confirm stage leaves
-        (`confirm_stage.best_controllers`) and its GL probes."""
-        run = self.run
+        """best.gif's replay and its GL probes."""
+        run, shown = self.run, self.shown
         if not (run.gif and run.lead):
             return []
-        shown = best_controllers(run.cfg, run.p, self.start)
         return [Job("replay", lambda: video.lower_replay(run.p.space, shown)),
                 Job("gl", video.choose_gl, own_thread=True)]
 
