@@ -49,3 +49,39 @@ def test_four_devices_give_one_devices_fitness():
     assert got["split"] == {"false": [8.0] * 6, "true": [2.0] * 6}  # 6 padded to 8
     np.testing.assert_allclose(got["four"], got["one"], rtol=1e-5, atol=1e-5)
     assert np.ptp(got["one"]) > 1.0  # different bodies, different fitness: a mix-up would show
+
+
+BROADCAST = r"""
+import sys
+import jax
+jax.config.update("jax_cpu_collectives_implementation", "gloo")
+jax.distributed.initialize(coordinator_address=sys.argv[1], num_processes=2,
+                           process_id=int(sys.argv[2]))
+from evojax_morph.sharding import broadcast_json
+lead = {"candidates": [[{"body": "0@0[1]()", "mean": 1.5}, '{"kind": [1]}']], "log": None}
+print("RESULT", json.dumps(broadcast_json(lead if jax.process_index() == 0 else None)))
+"""
+
+
+@pytest.mark.slow  # two new Pythons starting JAX's distributed runtime: 10 to 40 s on 2 cores
+def test_two_processes_get_the_leads_value():
+    """`broadcast_json` (the body log's best, handed by the lead process to the confirm stage of
+    every process) between two processes of one run, each of one CPU device."""
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    with socket.socket() as s:  # a free port for the coordinator
+        s.bind(("127.0.0.1", 0))
+        address = f"127.0.0.1:{s.getsockname()[1]}"
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    script = "import json\n" + BROADCAST
+    procs = [subprocess.Popen([sys.executable, "-c", script, address, str(i)], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for i in range(2)]
+    outs = [p.communicate(timeout=120) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], [err[-2000:] for _, err in outs]
+    got = [json.loads(out.split("RESULT ")[1]) for out, _ in outs]
+    lead = {"candidates": [[{"body": "0@0[1]()", "mean": 1.5}, '{"kind": [1]}']], "log": None}
+    assert got == [lead, lead]
