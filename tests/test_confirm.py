@@ -14,11 +14,9 @@ from conftest import truncate
 import evojax_morph as em
 from evojax_morph.fitnesses import table as tb
 from evojax_morph.records import bodylog
-from evojax_morph.records.checkpoints import Damaged, seal
+from evojax_morph.records.checkpoints import seal
 from evojax_morph.run import cli
 from evojax_morph.run import confirm_stage as confirming
-from evojax_morph.run.resume import kept_record
-from evojax_morph.search.pipeline import RunConfig
 
 S = 8  # results a body in the tables here
 STEADY, LUCKY, UNLUCKY = 350.0, 400.0, -1000.0
@@ -108,9 +106,10 @@ def test_resume_of_a_finished_run_does_not_confirm_again(planted, tmp_path, monk
     assert e.value.code == 2
     assert "confirmed.json is damaged: its SHA-256 is not the saved one" in capsys.readouterr().err
     truncate(again / "confirmed.json")
-    cfg = RunConfig(**json.loads((again / "config.json").read_text()))
-    with pytest.raises(Damaged, match=r"confirmed.json does not read \(JSONDecodeError: "):
-        kept_record(again, cfg, 4, {})
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--out", str(again), "--resume", "--steps", "4"])
+    assert e.value.code == 2
+    assert "confirmed.json does not read (JSONDecodeError: " in capsys.readouterr().err
 
 
 def test_the_greedy_trajectory_joins_the_confirm_call(walker, tmp_path, monkeypatch):

@@ -116,7 +116,8 @@ def make_policy(name: str, env: EvolutionEnv, cfg: Any = None, **overrides) -> P
 def make_agent(name: str, env: EvolutionEnv, cfg: Any = None, mesh=None, **overrides) -> Agent:
     """The agent `name` on `env`, jitted, its state replicated on `mesh` (default: every
     device); `cfg` and `overrides` as in `make_policy`."""
-    return from_policy(env, make_policy(name, env, cfg, **overrides), mesh)
+    policy = make_policy(name, env, cfg, **overrides)
+    return from_policy(env, policy, mesh)
 
 
 def ask_tell(name: str, env: EvolutionEnv, cfg: Any = None, **overrides) -> AskTell:

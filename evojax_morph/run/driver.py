@@ -6,8 +6,8 @@ directory), then runs its stages: `Evolve` (the steps chunk by chunk, then the t
 greedy walk from m0) -> `Evolved`; `Confirm` (the bodies of the highest mean in the body log
 evaluated again from scratch, the greedy trajectory's in the same call; its best is the run's
 best body) -> `Best`; `Report`. Each stage offers the programs it will call through one method,
-`programs()`, which compile ahead on a second thread (`compile_ahead`), and runs with `go`. One
-`Recorder` writes every file (`evojax_morph.run` lists them).
+`programs()`, which compile ahead on a second thread (`compile_ahead`), and runs with
+`run_stage`. One `Recorder` writes every file (`evojax_morph.run` lists them).
 """
 
 from __future__ import annotations
@@ -45,14 +45,36 @@ def fresh_run_dir(cfg: RunConfig) -> Path:
 def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     """Runs `cfg` in the directory `out` (checked writable), from its last checkpoint if
     `resume`, drawing best.gif at the end if `gif`; every process calls it, process 0 writes
-    the files and prints. The programs called after m0's compile ahead (`compile_ahead`)."""
+    the files and prints. The run as stages: build, evolve (from m0 or a checkpoint), confirm,
+    report; the programs called after m0's compile ahead (`compile_ahead`), each stage's queued
+    before m0's evaluation (begun after its lowering)."""
     # Lowered on the compile-ahead thread while m0 compiles and runs, and compiled there unless
     # the engine captures graphs on a GPU (MuJoCo Warp), which a compile's autotuning breaks
     # (`compile_ahead`); on several GPUs then not even lowered ahead (runs there hung).
     graphs = registered(cfg.physics).graph_capture and jax.default_backend() == "gpu"
     ahead = Warmup(on=False if graphs and jax.device_count() > 1 else None, compiles=not graphs)
     try:
-        _execute(cfg, out, resume, gif, ahead)
+        clock = Clock(ahead.waited)
+        record = Recorder(out, lead=jax.process_index() == 0)
+        run, abstract = _build(cfg, out, gif)
+        begin = start(run, resume, abstract)
+        record.open(cfg, run.p.space)  # a checkpoint reads, or none is to: it goes on under cfg
+        clock.part("build")
+        evolve = Evolve(run, begin, abstract)
+        ahead.collect(evolve.programs())
+        confirm = Confirm(run, begin)
+        ahead.collect(confirm.programs())
+        report = Report(run, confirm.shown)
+        ahead.collect(report.programs())
+        with checkpoints.saving(out / "checkpoints"):
+            evolved = evolve.run_stage(record, ahead, clock)
+            best = confirm.run_stage(evolved, record, ahead, clock)
+            if run.lead:
+                report.run_stage(evolved, best, record, clock)
+    except OSError:  # a full disk, a folder made read-only: the checkpoints in flight land
+        with contextlib.suppress(Exception):  # first, so the run resumes from the newest
+            record.manager.wait_until_finished()
+        raise
     finally:
         ahead.close(wait=False)  # on an error, drops the programs not begun
 
@@ -89,34 +111,6 @@ class Run(NamedTuple):
     log: Callable  # print on the lead process, else nothing
     key_init: jax.Array
     key_greedy: jax.Array
-
-
-def _execute(cfg: RunConfig, out: Path, resume: bool, gif: bool, ahead: Warmup) -> None:
-    """The run as stages: build, evolve (from m0 or a checkpoint), confirm, report."""
-    clock = Clock(ahead.waited)
-    record = Recorder(out, lead=jax.process_index() == 0)
-    run, abstract = _build(cfg, out, gif)
-    begin = start(run, resume, abstract)
-    record.open(cfg, run.p.space)  # a checkpoint reads, or none is to: it goes on under cfg
-    clock.part("build")
-    # The stages, each with its programs queued before m0's evaluation (begun after its
-    # lowering).
-    evolve = Evolve(run, begin, abstract)
-    ahead.collect(evolve.programs())
-    confirm = Confirm(run, begin)
-    ahead.collect(confirm.programs())
-    report = Report(run, confirm.shown)
-    ahead.collect(report.programs())
-    try:
-        with checkpoints.saving(out / "checkpoints"):
-            evolved = evolve.run_stage(record, ahead, clock)
-            best = confirm.run_stage(evolved, record, ahead, clock)
-            if run.lead:
-                report.run_stage(evolved, best, record, clock)
-    except OSError:  # a full disk, a folder made read-only: the checkpoints in flight land
-        with contextlib.suppress(Exception):  # first, so the run resumes from the newest
-            record.manager.wait_until_finished()
-        raise
 
 
 def _build(cfg: RunConfig, out: Path, gif: bool) -> tuple[Run, object]:

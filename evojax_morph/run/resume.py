@@ -56,9 +56,10 @@ def start(run, resume: bool, abstract) -> Start:
     of its directory that reads, restored to `abstract` (the agent state's shapes and
     placement). Raises `checkpoints.Damaged` where a file it reads back is not the run's."""
     out, cfg = run.out, run.cfg
-    stale, skipped = (out / "confirmed.json").exists(), confirm_skipped(cfg)
+    done, skipped = out / "confirmed.json", confirm_skipped(cfg)
     if not resume:
-        return Start(None, None, [], None, None, stale=stale, skipped=skipped)
+        return Start(None, None, [], None, None, stale=done.exists(), skipped=skipped)
+    before = checkpoints.read_sealed(done) if done.exists() else None
     step, restored, _ = checkpoints.restore_newest(
         out, lambda manager, step: checkpoints.restore_checked(manager, step, abstract), run.log)
     if step is None:
@@ -70,24 +71,23 @@ def start(run, resume: bool, abstract) -> Start:
         state, log = restored[0], restored[1]["log"]
         check_log(out / "bodies.sqlite", step, log)
         rows = metrics_rows(out / "metrics.csv", step)
-    kept = kept_record(out, cfg, max(step or 0, cfg.steps), log)
+    kept = kept_record(before, cfg, max(step or 0, cfg.steps), log)
     best = None
     if kept and kept["confirmed"]:
-        best = Morphology.from_dict(kept["best_morphology"]), (
-            saved_controllers.load(out / saved_controllers.DIR / "best")
-            if saved_controllers.has_controllers(run.p.fitness) else None)
-    return Start(step, state, rows, log, kept, best, stale and kept is None, skipped)
+        controllers = (saved_controllers.load(out / saved_controllers.DIR / "best")
+                       if saved_controllers.has_controllers(run.p.fitness) else None)
+        best = Morphology.from_dict(kept["best_morphology"]), controllers
+    return Start(step, state, rows, log, kept, best, before is not None and kept is None,
+                 skipped)
 
 
-def kept_record(out: Path, cfg, step: int, log: dict | None) -> dict | None:
-    """confirmed.json's record where the run was confirmed at `step` with these settings from
-    the body log whose proof the restored checkpoint holds (`log`; None: none restored), so a
-    --resume of a finished run does not do it again; else None (another run's file, or one of
-    a log since gone on). Raises `Damaged` where the file does not read."""
-    done = out / "confirmed.json"
-    if not done.exists():
+def kept_record(before: dict | None, cfg, step: int, log: dict | None) -> dict | None:
+    """confirmed.json's record (`before`; None: no such file) where the run was confirmed at
+    `step` with these settings from the body log whose proof the restored checkpoint holds
+    (`log`; None: none restored), so a --resume of a finished run does not do it again; else
+    None (another run's file, or one of a log since gone on)."""
+    if before is None:
         return None
-    before = checkpoints.read_sealed(done)
     now = {"env_steps": step, "bodies": cfg.confirm, "controllers": cfg.confirm_controllers,
            "log": log}
     return before if log is not None and all(before.get(k) == v for k, v in now.items()) else None

@@ -112,7 +112,8 @@ def confirm(
     n = morphs.active.shape[0]
     one = cfg.with_controllers(1)
     copies = jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x), controllers, axis=0), morphs)
-    res = to_host(evaluate(space, copies, key, one, mesh=mesh))
+    res = evaluate(space, copies, key, one, mesh=mesh)
+    res = to_host(res)
     per_body = lambda x: np.asarray(x).reshape((n, controllers) + x.shape[1:])  # noqa: E731
     values, diverged = per_body(res.fitness), per_body(res.diverged)
     distance, upright = per_body(res.distance), per_body(res.upright)

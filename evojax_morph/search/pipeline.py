@@ -103,10 +103,10 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     agent_cfg: the agent's own config; default: what the run's settings give it
     (`agents.config_for_run`).
     """
+    task = make_task(cfg.task or get_fitness(cfg.fitness).default_task(
+        Inputs(cfg.space, classifier=cfg.classifier, table=cfg.table)))
     space = make_space(cfg.space)
-    task = cfg.task or get_fitness(cfg.fitness).default_task(
-        Inputs(cfg.space, classifier=cfg.classifier, table=cfg.table))
-    fit_cfg = FitnessConfig(kind=cfg.fitness, task=make_task(task),
+    fit_cfg = FitnessConfig(kind=cfg.fitness, task=task,
                             ppo=standard_ppo(cfg.train_steps, cfg.controllers),
                             classifier=cfg.classifier, physics=cfg.physics, table=cfg.table,
                             classes=cfg.classes,
