@@ -177,7 +177,7 @@ def emit(row: dict, out: str | None) -> None:
 
 def measure(args, space, cfg, walk, batch: int) -> dict:
     """The row of one batch: the PPO fitness timed batched and one body at a time, and the raw
-    physics at the same worlds (B bodies x K x num_envs worlds, no learning)."""
+    physics at the same worlds (B bodies x K x worlds_per_controller worlds, no learning)."""
     keys = jax.random.split(jax.random.PRNGKey(batch), batch)
     morphs = walk(keys, args.mutations)
     evaluate = lambda: em.evaluate(space, morphs, keys, cfg).fitness  # timed now
@@ -185,9 +185,9 @@ def measure(args, space, cfg, walk, batch: int) -> dict:
 
     t_single = one_at_a_time(space, morphs, keys, cfg, min(batch, args.single))
 
-    # Raw physics at the same worlds: B bodies x K x num_envs worlds, no learning.
+    # Raw physics at the same worlds: B bodies x K x worlds_per_controller worlds, no learning.
     models = jax.jit(jax.vmap(space.mjx_model))(morphs)
-    worlds = args.controllers * cfg.ppo.num_envs
+    worlds = args.controllers * cfg.ppo.worlds_per_controller
     rollout = make_raw_physics(engines.get_engine(args.physics), space, 100)
     t_phys = median_time(lambda: rollout(models, worlds), args.repeats)
     physics_rate = batch * worlds * 100 / t_phys

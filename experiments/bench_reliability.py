@@ -47,18 +47,20 @@ STANDARD = em.standard_ppo(50_000)
 VARIANTS = {
     "standard": {},
     # the same sequential length (156 updates of 20 steps) with 4x the envs: 4x the samples
-    "wide": dict(num_envs=64, num_minibatches=8, train_steps=200_000),
+    "wide": dict(worlds_per_controller=64, num_minibatches=8, train_steps=200_000),
     # between the two: 2x the envs and samples at the same sequential length
-    "mid": dict(num_envs=32, num_minibatches=8, train_steps=100_000),
+    "mid": dict(worlds_per_controller=32, num_minibatches=8, train_steps=100_000),
     # standard with the value loss kept small: rewards / 10, so grad clipping acts on the policy too
     "scaled": dict(reward_scaling=0.1),
     # both, with brax-like epochs
-    "wide_scaled": dict(num_envs=64, num_minibatches=8, train_steps=200_000, reward_scaling=0.1),
+    "wide_scaled": dict(worlds_per_controller=64, num_minibatches=8, train_steps=200_000,
+                        reward_scaling=0.1),
     "lr3e-4": dict(learning_rate=3e-4),
     "no_clip": dict(max_grad_norm=1e9),
     "long": dict(train_steps=100_000),
     # a CPU smoke budget
-    "tiny": dict(train_steps=320, num_envs=8, num_minibatches=2, update_epochs=2, eval_episodes=1),
+    "tiny": dict(train_steps=320, worlds_per_controller=8, num_minibatches=2, update_epochs=2,
+                 eval_episodes=1),
 }
 AGGREGATES = ("mean", "max")
 

@@ -210,7 +210,7 @@ def test_evaluate_api(walker):
     with pytest.raises(ValueError, match="unknown fitness"):
         em.FitnessConfig(kind="tame?")
     with pytest.raises(ValueError, match="minibatches"):
-        em.PPOConfig(num_envs=3, unroll_length=3, num_minibatches=4).validate()
+        em.PPOConfig(worlds_per_controller=3, unroll_length=3, num_minibatches=4).validate()
 
 
 # --- masked PPO pieces against Python loops ------------------------------------------------
@@ -245,7 +245,7 @@ def test_one_update_moves_every_layer_but_a_masked_motors_outputs():
     scale) keep their weights to the bit: its log-probability and entropy are masked out.
     (The whole training program, collection included, is test_render's, in the slow set.)"""
     space = em.make_space("bad_walker")
-    cfg = dataclasses.replace(CFG.ppo, num_envs=4, unroll_length=8, num_minibatches=2,
+    cfg = dataclasses.replace(CFG.ppo, worlds_per_controller=4, unroll_length=8, num_minibatches=2,
                               update_epochs=2)
     env = em.Locomotion(space, CFG.task)
     networks = ppo.make_networks(env, cfg)
@@ -255,7 +255,7 @@ def test_one_update_moves_every_layer_but_a_masked_motors_outputs():
     a = env.action_size
     mask = jnp.arange(a) != 1  # motor 1 masked
     k_obs, k_act, k_rew = jax.random.split(jax.random.PRNGKey(1), 3)
-    shape = (cfg.unroll_length, cfg.num_envs)
+    shape = (cfg.unroll_length, cfg.worlds_per_controller)
     obs = jax.random.normal(k_obs, shape + (env.obs_size,))
     dist = networks.parametric_action_distribution
 

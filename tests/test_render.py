@@ -104,13 +104,16 @@ def test_saved_controllers_round_trip(run_dir):
 def test_a_controller_saved_on_a_gpu_reads_here():
     """The Crawler study's kept controller was saved on an H200 (Orbax records its device,
     "cuda:0"); it reads on this machine's device, its digests checked, the body the one its
-    best.pkl names."""
+    best.pkl names; its PPO settings, saved when `worlds_per_controller` was `num_envs`, read
+    under the new name."""
     kept = ROOT / "docs/figures/crawler_study"
     assert "cuda:0" in (kept / "best_controller/params/_sharding").read_text()
     saved = em.load_controller(kept / "best_controller")
     best = pickle.loads((kept / "best.pkl").read_bytes())
     assert saved.space.name == "crawler" and saved.label.startswith("the study's best body")
     assert saved.space.canonical(saved.morph) == best["entry"]["body"]
+    assert '"num_envs": 16' in (kept / "best_controller/meta/metadata").read_text()
+    assert saved.fitness.ppo.worlds_per_controller == 16
     assert all(x.devices() == {jax.local_devices()[0]} for x in jax.tree.leaves(saved.params))
 
 

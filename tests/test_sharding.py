@@ -23,7 +23,7 @@ assert jax.device_count() == 4
 # float64 so that only rounding (reduction order differs between the programs) separates them
 jax.config.update("jax_enable_x64", True)
 space = em.make_space("bad_walker")
-cfg = em.FitnessConfig(ppo=em.PPOConfig(train_steps=320, num_envs=8, num_minibatches=2,
+cfg = em.FitnessConfig(ppo=em.PPOConfig(train_steps=320, worlds_per_controller=8, num_minibatches=2,
                                         update_epochs=2, eval_episodes=1))
 keys = jax.random.split(jax.random.PRNGKey(0), 6)  # 6 bodies on 4 devices: padded to 8
 morphs = jax.vmap(space.random_morphology, (0, None))(keys, 3)

@@ -370,8 +370,8 @@ def test_ppo_fitness_on_warp():
     third = jax.tree.map(lambda x: x[0], _morphs(space))
     morphs = em.stack([space.initial(), space.optimum(), third])
     keys = jax.random.split(jax.random.PRNGKey(2), 3)
-    ppo_cfg = em.PPOConfig(train_steps=0, num_envs=4, unroll_length=4, num_minibatches=2,
-                           update_epochs=1, controllers=2, eval_episodes=2)
+    ppo_cfg = em.PPOConfig(train_steps=0, worlds_per_controller=4, unroll_length=4,
+                           num_minibatches=2, update_epochs=1, controllers=2, eval_episodes=2)
     task = em.TaskConfig(episode_length=5)
     untrained = {
         p: em.evaluate(space, morphs, keys, em.FitnessConfig(task=task, ppo=ppo_cfg, physics=p))
@@ -409,7 +409,7 @@ assert all(preloaded.get(n) for n in names), preloaded
 made = [n for n in preloaded if "." not in n]  # modules of one kernel, made from the model
 keys = jax.random.split(jax.random.PRNGKey(0), 2)
 morphs = jax.vmap(space.random_morphology, (0, None))(keys, 3)
-ppo = em.PPOConfig(train_steps=32, num_envs=4, unroll_length=4, num_minibatches=2,
+ppo = em.PPOConfig(train_steps=32, worlds_per_controller=4, unroll_length=4, num_minibatches=2,
                    update_epochs=1, controllers=1, eval_episodes=1)
 cfg = em.FitnessConfig(task=em.TaskConfig(episode_length=5), ppo=ppo, physics="warp")
 jax.block_until_ready(em.evaluate(space, morphs, keys, cfg).fitness)
@@ -495,7 +495,7 @@ from evojax_morph.sharding import batch_mesh
 assert jax.device_count() == 4
 space = em.make_space("bad_walker")
 cfg = em.FitnessConfig(physics="warp", ppo=em.PPOConfig(
-    train_steps=320, num_envs=8, num_minibatches=2, update_epochs=2, eval_episodes=1))
+    train_steps=320, worlds_per_controller=8, num_minibatches=2, update_epochs=2, eval_episodes=1))
 keys = jax.random.split(jax.random.PRNGKey(0), 6)  # 6 bodies on 4 devices: padded to 8
 morphs = jax.vmap(space.random_morphology, (0, None))(keys, 3)
 four = em.evaluate(space, morphs, keys, cfg)

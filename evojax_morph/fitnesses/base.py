@@ -81,8 +81,10 @@ class FitnessConfig:
     @classmethod
     def from_dict(cls, d: dict) -> FitnessConfig:
         tuples = lambda c: {k: tuple(v) if isinstance(v, list) else v for k, v in c.items()}
-        own = d.get("params")
-        return cls(kind=d["kind"], task=TaskConfig(**d["task"]), ppo=PPOConfig(**tuples(d["ppo"])),
+        own, ppo = d.get("params"), tuples(d["ppo"])
+        if "num_envs" in ppo:  # saved before PPOConfig.num_envs was named worlds_per_controller
+            ppo["worlds_per_controller"] = ppo.pop("num_envs")
+        return cls(kind=d["kind"], task=TaskConfig(**d["task"]), ppo=PPOConfig(**ppo),
                    classifier=d["classifier"], physics=d.get("physics", "jax"),
                    table=d.get("table", ""), classes=d.get("classes", False),
                    params=None if own is None else get_fitness(d["kind"]).params(**tuples(own)))

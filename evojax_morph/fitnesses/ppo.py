@@ -18,9 +18,8 @@ def standard_ppo(train_steps: int, controllers: int = 1) -> ppo.PPOConfig:
     """The inner PPO that runs, experiments and tests use, at a budget of `train_steps` per
     controller, with `controllers` independent controllers per body (the fitness is their mean;
     docs/benchmarks.md measures how each more controller cuts the noise, and what it costs)."""
-    return ppo.PPOConfig(
-        train_steps=train_steps, num_envs=16, unroll_length=20, controllers=controllers
-    )
+    return ppo.PPOConfig(train_steps=train_steps, worlds_per_controller=16, unroll_length=20,
+                         controllers=controllers)
 
 
 def validate(cfg: FitnessConfig) -> None:

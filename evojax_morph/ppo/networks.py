@@ -25,10 +25,11 @@ class PPOConfig:
     """Inner PPO settings; budgets are per morphology.
 
     Attributes:
-      train_steps: control steps of training, over all envs
-      num_envs: parallel worlds per morphology
-      unroll_length: control steps per env between updates
-      num_minibatches: minibatches an update's batch (num_envs x unroll_length) is split into
+      train_steps: control steps of training, over all its worlds
+      worlds_per_controller: parallel worlds each controller trains in (brax's `num_envs`)
+      unroll_length: control steps per world between updates
+      num_minibatches: minibatches an update's batch (worlds_per_controller x unroll_length)
+        is split into
       update_epochs: passes over each update's batch
       learning_rate: Adam's step size
       discount: the return's discount factor (gamma)
@@ -46,7 +47,7 @@ class PPOConfig:
     """
 
     train_steps: int = 100_000
-    num_envs: int = 32
+    worlds_per_controller: int = 32
     unroll_length: int = 20
     num_minibatches: int = 4
     update_epochs: int = 8
@@ -66,15 +67,16 @@ class PPOConfig:
 
     @property
     def num_updates(self) -> int:
-        return max(1, self.train_steps // (self.num_envs * self.unroll_length))
+        return max(1, self.train_steps // (self.worlds_per_controller * self.unroll_length))
 
     def validate(self) -> None:
-        batch = self.num_envs * self.unroll_length
-        if self.train_steps < 0 or self.num_envs < 1 or self.unroll_length < 1:
-            raise ValueError("train_steps must be >= 0, num_envs and unroll_length >= 1")
+        batch = self.worlds_per_controller * self.unroll_length
+        if self.train_steps < 0 or self.worlds_per_controller < 1 or self.unroll_length < 1:
+            raise ValueError("train_steps must be >= 0, worlds_per_controller and unroll_length "
+                             ">= 1")
         if batch % self.num_minibatches:
             raise ValueError(
-                f"num_envs x unroll_length ({batch}) must divide into "
+                f"worlds_per_controller x unroll_length ({batch}) must divide into "
                 f"{self.num_minibatches} minibatches"
             )
         if self.eval_episodes < 1 or self.controllers < 1:

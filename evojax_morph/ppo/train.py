@@ -56,9 +56,10 @@ def make_train(
 
     init(key) -> Params: one body's controllers (K stacked along a leading axis if K > 1).
     train(keys (B,), morphs (B, ...), params (B, ...)) -> FitnessResult of (B,) arrays: each body
-      trains its K controllers from `params`, every world of every body (B x K x num_envs) in
-      one flat physics batch (`evojax_morph.physics.engines`), then scores them (`eval_episodes`
-      deterministic episodes each, B x K x eval_episodes worlds).
+      trains its K controllers from `params`, every world of every body (B x K x
+      `worlds_per_controller`) in one flat physics batch (`evojax_morph.physics.engines`),
+      then scores them (`eval_episodes` deterministic episodes each, B x K x eval_episodes
+      worlds).
     """
     cfg.validate()
     env = Locomotion(space, task_cfg) if layout is None else Locomotion(
@@ -99,17 +100,17 @@ _split2 = jax.vmap(jax.random.split)  # (L,) keys -> (L, 2) keys
 
 def make_train_learners(space: Space, env: Locomotion, engine: Engine, networks, cfg: PPOConfig):
     """`train_learners(keys (L,), models (B,), params (L, ...)) -> FitnessResult of (L,) arrays`:
-    L = B x K learners (controllers), learner l on body l // K with num_envs worlds, all L x
-    num_envs worlds stepped as one flat batch; PPO updates, then `eval_episodes` deterministic
-    episodes per learner (`env_steps`: one learner's)."""
+    L = B x K learners (controllers), learner l on body l // K with E = `worlds_per_controller`
+    worlds, all L x E worlds stepped as one flat batch; PPO updates, then `eval_episodes`
+    deterministic episodes per learner (`env_steps`: one learner's)."""
     optimizer = optax.chain(
         optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate)
     )
     collect = make_collect(env, engine, networks, cfg)
     learn = jax.vmap(make_learn(networks, optimizer, cfg))
     evaluate = make_evaluate_learners(space, env, engine, cfg)
-    num_envs = cfg.num_envs
-    by_learner = lambda x: x.reshape((-1, num_envs) + x.shape[1:])
+    per_learner = cfg.worlds_per_controller
+    by_learner = lambda x: x.reshape((-1, per_learner) + x.shape[1:])
     learner_steps = env_steps_per_morphology(env.cfg, cfg) // cfg.controllers
 
     def train_learners(keys: jax.Array, models, params: Params) -> FitnessResult:
@@ -117,9 +118,9 @@ def make_train_learners(space: Space, env: Locomotion, engine: Engine, networks,
         keys, key_reset = jnp.moveaxis(_split2(keys), 1, 0)
         with jax.named_scope("reset"):
             worlds, world_bodies, first = reset_learners(
-                space, env, engine, key_reset, models, num_envs
+                space, env, engine, key_reset, models, per_learner
             )  # (L x E,)
-        mask = world_bodies.motors[::num_envs]  # (L, A)
+        mask = world_bodies.motors[::per_learner]  # (L, A)
         num_active = jnp.maximum(mask.sum(-1), 1)
         net = {"policy": params.policy, "value": params.value}
         opt_state = jax.vmap(optimizer.init)(net)
@@ -143,7 +144,7 @@ def make_train_learners(space: Space, env: Locomotion, engine: Engine, networks,
             }
             return (normalizer, net, opt_state, rollout._replace(keys=keys)), metrics
 
-        zeros = jnp.zeros((learners, num_envs), first.reward.dtype)
+        zeros = jnp.zeros((learners, per_learner), first.reward.dtype)
         carry = (params.normalizer, net, opt_state, Rollout(first, zeros, zeros, keys))
         steps = cfg.num_updates if cfg.train_steps else 0
         (normalizer, net, _, rollout), metrics = jax.lax.scan(update, carry, length=steps)
@@ -178,7 +179,7 @@ def make_collect(env: Locomotion, engine: Engine, networks, cfg: PPOConfig):
     its `first`. traj: a `Transition` of (T, L, E, ...) arrays."""
     dist = networks.parametric_action_distribution
     policy_apply = jax.vmap(networks.policy_network.apply)
-    by_learner = lambda x: x.reshape((-1, cfg.num_envs) + x.shape[1:])
+    by_learner = lambda x: x.reshape((-1, cfg.worlds_per_controller) + x.shape[1:])
     flat = lambda x: x.reshape((-1,) + x.shape[2:])
 
     def collect(worlds, bodies, first: EnvState, mask, normalizer, policy, rollout: Rollout):
@@ -219,7 +220,7 @@ def make_learn(networks, optimizer: optax.GradientTransformation, cfg: PPOConfig
     (E, obs_size) observations after it: `update_epochs` epochs of `num_minibatches`."""
     grad_fn = jax.grad(make_loss(networks, cfg), has_aux=True)
     value_apply = networks.value_network.apply
-    samples = cfg.num_envs * cfg.unroll_length
+    samples = cfg.worlds_per_controller * cfg.unroll_length
     minibatch = samples // cfg.num_minibatches
 
     def learn(normalizer, net, opt_state, traj: Transition, last_obs, mask, key):
@@ -334,5 +335,6 @@ def make_evaluate_learners(space: Space, env: Locomotion, engine: Engine, cfg: P
 
 def env_steps_per_morphology(task_cfg: TaskConfig, cfg: PPOConfig) -> int:
     """Control steps one `train` call takes per morphology: training plus evaluation."""
-    train = cfg.num_updates * cfg.num_envs * cfg.unroll_length if cfg.train_steps else 0
+    per_update = cfg.worlds_per_controller * cfg.unroll_length
+    train = cfg.num_updates * per_update if cfg.train_steps else 0
     return cfg.controllers * (train + cfg.eval_episodes * task_cfg.episode_length)
