@@ -4,6 +4,7 @@ test_sharding_run.py, on 4 devices, in the slow set)."""
 import collections
 import concurrent.futures
 import csv
+import dataclasses
 import json
 import logging
 import os
@@ -84,6 +85,20 @@ def test_bad_input_exits_with_2(args, message, capsys, tmp_path):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and message in err[0] and "--help" in err[1], err  # no usage block
     assert not (tmp_path / "run").exists()  # nothing half-written
+
+
+@pytest.mark.parametrize("space, evolutions, steps", [
+    ("bad_walker", 256, 100), ("length_walker", 256, 100), ("crawler", 256, 100),
+    ("constructor", 128, 60)])
+def test_on_a_gpu_the_agents_settings_follow_the_spaces_batch(space, evolutions, steps):
+    """A space gives its GPU batch and steps (`Space.gpu_defaults`), the agents' settings
+    follow: epsilon over half the steps, learning after one step's batch; the values each
+    space listed itself before (50 and 256; the Constructor's 30 and 128)."""
+    got = cli.gpu_defaults(space)
+    assert (got["num_envs"], got["steps"]) == (evolutions, steps)
+    assert (got["explore_steps"], got["learning_starts"]) == {
+        256: (50, 256), 128: (30, 128)}[evolutions]
+    assert set(got) <= {f.name for f in dataclasses.fields(RunConfig)}
 
 
 @pytest.mark.parametrize("record", ['{"space": "bad_walker"}', '{"space": ', '[1]'])

@@ -91,13 +91,19 @@ def settings_problem(name: str, num_envs: int, population: int = 0, tournament: 
     return None
 
 
-def config_for_run(name: str, env: EvolutionEnv, run: RunOptions) -> Any:
-    """The config of agent `name` that a run's settings give it (None for the baselines
-    without settings; a config without `for_run` takes none of them)."""
+def config_for_run(name: str, env: EvolutionEnv, run: RunOptions, params: dict | None = None
+                   ) -> Any:
+    """The config of agent `name` that a run's shared settings give it (None for the baselines
+    without settings; a config without `for_run` takes none of them), then its own `params`
+    (fields of its config) set over it; one named as a `RunOptions` field goes in before the
+    defaults resolve, so that `population` alone resolves the tournament from it."""
     config = get_agent(name).config
     if config is None:
         return None
-    return config.for_run(env, run) if hasattr(config, "for_run") else config()
+    params = params or {}
+    run = run._replace(**{k: v for k, v in params.items() if k in RunOptions._fields})
+    config = config.for_run(env, run) if hasattr(config, "for_run") else config()
+    return dataclasses.replace(config, **params) if params else config
 
 
 def make_policy(name: str, env: EvolutionEnv, cfg: Any = None, **overrides) -> Policy:

@@ -54,9 +54,11 @@ from evojax_morph.tasks import list_tasks, make_task
 
 
 def gpu_defaults(space: str) -> dict:
-    """The settings a run of `space` takes on a GPU (`Space.gpu_defaults`); an unknown space
-    gets the common ones (`check` then says it is unknown)."""
-    return (get_space(space) if space in list_spaces() else Space).gpu_defaults()
+    """The settings a run of `space` takes on a GPU (`Space.gpu_defaults`; an unknown space
+    gets the common ones, `check` then says it is unknown), and the agents' that follow from
+    them: epsilon anneals over half the steps, learning waits for one step's batch."""
+    run = (get_space(space) if space in list_spaces() else Space).gpu_defaults()
+    return run | {"explore_steps": run["steps"] // 2, "learning_starts": run["num_envs"]}
 
 
 # What a --resume may change (the rest would not fit its checkpoint or would make another run):

@@ -65,11 +65,8 @@ class RunConfig:
 
 
 def agent_config(cfg: RunConfig, env: EvolutionEnv) -> Any:
-    """The config of the run's agent that its settings give it (None for an agent without
-    settings), its defaults resolved (`agents.config_for_run`), then `cfg.agent_params` set
-    over it (one named as a `RunOptions` field goes in before the defaults are resolved, so
-    that `population` alone resolves the tournament from it)."""
-    params = cfg.agent_params
+    """The config of the run's agent (None for an agent without settings): what the run's
+    shared settings give it, `cfg.agent_params` set over it (`agents.config_for_run`)."""
     run = RunOptions(
         hidden=cfg.hidden,
         reward_scale=1.0 / get_fitness(cfg.fitness).scale(env.space),
@@ -77,9 +74,8 @@ def agent_config(cfg: RunConfig, env: EvolutionEnv) -> Any:
         learning_starts=cfg.learning_starts,
         population=cfg.population,
         tournament=cfg.tournament,
-    )._replace(**{k: v for k, v in params.items() if k in RunOptions._fields})
-    config = agents.config_for_run(cfg.agent, env, run)
-    return dataclasses.replace(config, **params) if params else config
+    )
+    return agents.config_for_run(cfg.agent, env, run, cfg.agent_params)
 
 
 class Pipeline(NamedTuple):

@@ -74,13 +74,11 @@ class Space(abc.ABC):
     def gpu_defaults(cls) -> dict:
         """The settings (`RunConfig` fields) a run of this space takes on a GPU, where the
         same command evaluates a larger batch with a longer PPO budget; the controllers per
-        body come from `gpu_controllers`."""
+        body come from `gpu_controllers`, the agents' settings from these (`run.cli`)."""
         return {
             "num_envs": 256,
             "train_steps": 50_000,
             "steps": 100,
-            "explore_steps": 50,
-            "learning_starts": 256,
             "chunk": 10,
             "checkpoint_every": 2,
             "confirm": 8,

@@ -91,8 +91,6 @@ class Constructor(Space):
             "num_envs": 128,
             "train_steps": 100_000,
             "steps": 60,
-            "explore_steps": 30,
-            "learning_starts": 128,
             "chunk": 5,
             "checkpoint_every": 1,
             "confirm": 8,
