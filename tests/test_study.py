@@ -15,7 +15,7 @@ from evojax_morph import agents
 from evojax_morph.morphology import signature
 from evojax_morph.records import bodylog
 from evojax_morph.records.checkpoints import Damaged
-from evojax_morph.search import study
+from evojax_morph.search import loop, study
 from evojax_morph.search.pipeline import RunConfig
 from experiments import common, crawler_study
 
@@ -51,6 +51,23 @@ def test_one_fitness_call_a_step_for_every_method_and_seed():
         assert states[m].best_fitness.shape == (SEEDS,)
         assert metrics[m]["fitness"].shape == (3, SEEDS, N)
         assert metrics[m]["signature"].shape == (3, SEEDS, N, 2)
+
+
+def test_the_search_loop_steps_in_chunks_and_stops_at_its_deadline():
+    """`search.loop.chunks`, the host's loop of a run and of a study: calls of at most a
+    chunk's steps from the steps done, each asked of `program` before its clock starts, its
+    metrics on the host; past the deadline no call begins."""
+    asked = []
+
+    def program(n):
+        asked.append(n)
+        return lambda state: (state + n, {"steps": np.arange(n)})
+
+    got = list(loop.chunks(program, 10, 2, 9, 3))
+    assert asked == [3, 3, 1]
+    assert [(c.step, c.n, c.state) for c in got] == [(5, 3, 13), (8, 3, 16), (9, 1, 17)]
+    assert all(len(c.metrics["steps"]) == c.n and c.seconds >= c.dispatch >= 0 for c in got)
+    assert list(loop.chunks(program, 0, 0, 9, 3, deadline=0.0)) == [] and len(asked) == 3
 
 
 def runs_as_alone(names, tmp_path):

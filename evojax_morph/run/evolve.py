@@ -10,6 +10,7 @@ from typing import NamedTuple
 from evojax_morph.physics.engines import registered
 from evojax_morph.run.compile_ahead import Job
 from evojax_morph.run.resume import Start
+from evojax_morph.search.loop import chunks
 from evojax_morph.search.pipeline import Greedy
 from evojax_morph.sharding import batch_mesh, to_host
 
@@ -60,27 +61,26 @@ class Evolve:
         clock.phase("build_and_m0")
         bar = tqdm(total=cfg.steps, initial=min(step, cfg.steps), unit="step",
                    dynamic_ncols=True, file=sys.stdout, disable=not run.lead)
-        chunks_done, chunk_seconds, dispatch = 0, [], None
-        while step < cfg.steps:
-            n = min(cfg.chunk, cfg.steps - step)
+        chunk_seconds, dispatch = [], None
+
+        def program(n):  # compiled ahead; a resumed run's first call after the engine's preload
+            nonlocal loading
             ahead.wait(f"chunk {n}")
-            if loading is not None:  # the engine's preload, before a resumed run's first call
+            if loading is not None:
                 waited = time.perf_counter()
                 loading.result()
                 clock.waits["preload"], loading = round(time.perf_counter() - waited, 2), None
-            chunk_start = time.perf_counter()
-            state, metrics = run.p.agent.chunk(state, n)
-            if dispatch is None:  # when the call returns; to_host then waits for the device
-                dispatch = round(time.perf_counter() - chunk_start, 2)
-            metrics = to_host(metrics)
-            chunk_seconds.append((n, time.perf_counter() - chunk_start))
-            record.chunk(step, metrics)
-            step += n
-            chunks_done += 1
-            bar.update(n)
+            return lambda state: run.p.agent.chunk(state, n)
+
+        for done in chunks(program, state, step, cfg.steps, cfg.chunk):
+            state, step = done.state, done.step
+            dispatch = round(done.dispatch, 2) if dispatch is None else dispatch
+            chunk_seconds.append((done.n, done.seconds))
+            record.chunk(step - done.n, done.metrics)
+            bar.update(done.n)
             bar.set_postfix(reward=f"{record.rows[-1]['reward_median']:.3g}",
                             best=f"{record.rows[-1]['best_fitness']:.3g}")
-            if chunks_done % cfg.checkpoint_every == 0 or step >= cfg.steps:
+            if len(chunk_seconds) % cfg.checkpoint_every == 0 or step >= cfg.steps:
                 record.checkpoint(step, state)
         bar.close()
         told = record.end_of_steps(self.confirm)

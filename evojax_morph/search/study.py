@@ -10,7 +10,8 @@ each other. The fitness sees one flat world axis, never a vmap inside a vmap (Mu
 call needs that), and a GPU gets calls as full as the study is wide.
 
 `make_study` gives the jitted `init(keys)` and `chunk(states, num_steps)` (one `lax.scan`);
-`run_study` is the host's loop: chunks, each followed by an atomic save, resumed from the file.
+`run_study` steps it in the host's loop of every search (`loop.chunks`, a run's too), each
+chunk followed by an atomic save, resumed from the file.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from evojax_morph.mdp import EvolutionEnv, EvoState
 from evojax_morph.morphology import canonical, signature
 from evojax_morph.records.bodylog import ranked
 from evojax_morph.records.checkpoints import check, digests, read_error, write_atomic
+from evojax_morph.search.loop import chunks
 from evojax_morph.search.pipeline import Pipeline, RunConfig, agent_config, build
 from evojax_morph.sharding import jit_replicated, to_host
 
@@ -163,8 +165,8 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
 
     Returns:
       {"metrics": {method: {name: (num_steps, S, ...)}}, "states": the final states (host),
-      "chunk_seconds": [the wall clock of each compiled chunk call], "chunk_steps": [the steps
-      of each],
+      "chunk_seconds": [the wall clock of each compiled chunk call, until its metrics reached
+      the host], "chunk_steps": [the steps of each],
       "evaluations_per_second": the study's evaluations over those seconds, "init_seconds":
       the start's call, compile included, "seconds": every call's wall clock from its
       `since`, compiles included}.
@@ -194,23 +196,24 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
 
     keep()
     compiled = {}
-    while so_far["done"] < num_steps:
-        if deadline is not None and time.time() > deadline:
-            return None
-        n = min(chunk, num_steps - so_far["done"])
-        if n not in compiled:  # compile outside the clock, then time the compiled call alone
+
+    def program(n):  # compiled before the clock starts: a call is timed alone
+        if n not in compiled:
             compiled[n] = loaded(study.chunk.lower(states, n).compile())
-        start = time.perf_counter()
-        states, metrics = jax.block_until_ready(compiled[n](states))
-        so_far["chunk_seconds"].append(time.perf_counter() - start)
-        so_far["chunk_steps"].append(n)
-        so_far["metrics"].append(to_host(metrics))
-        so_far["done"] += n
+        return compiled[n]
+
+    for done in chunks(program, states, so_far["done"], num_steps, chunk, deadline):
+        states = done.state
+        so_far["chunk_seconds"].append(done.seconds)
+        so_far["chunk_steps"].append(done.n)
+        so_far["metrics"].append(done.metrics)
+        so_far["done"] = done.step
         keep()
         if log is not None:
-            log(f"study step {so_far['done']} of {num_steps}: {so_far['chunk_seconds'][-1]:.1f} s "
-                f"for {n} ({study.evaluations * n / so_far['chunk_seconds'][-1]:.1f} "
-                "evaluations/s)")
+            log(f"study step {done.step} of {num_steps}: {done.seconds:.1f} s for {done.n} "
+                f"({study.evaluations * done.n / done.seconds:.1f} evaluations/s)")
+    if so_far["done"] < num_steps:  # past the deadline
+        return None
     cat = jax.tree.map(lambda *xs: np.concatenate(xs), *so_far["metrics"])
     timed = float(np.sum(so_far["chunk_seconds"]))
     return {
