@@ -1,6 +1,6 @@
 """The commands' flags (`run`, `render`, `tame`): their parser class, whose errors exit 2 with
 the reason and where the flags are listed, and the flags built from a kind's settings
-dataclass (`--agent.FIELD`, `--fitness.FIELD`)."""
+dataclass (`--agent.FIELD`, `--fitness.FIELD`, `--task.FIELD`)."""
 
 from __future__ import annotations
 
@@ -18,20 +18,23 @@ class Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n{self.prog}: --help lists the flags\n")
 
 
-def add_settings(group, prefix: str, config: type) -> None:
+def add_settings(group, prefix: str, config: type, skip: tuple[str, ...] = ()) -> None:
     """`--PREFIX.FIELD VALUE` for each field of a kind's settings dataclass `config` (an
-    agent's config, a fitness kind's params), typed by its default (a bool as true or false),
-    its help the field's comment; `given_settings` collects the ones given."""
-    notes = dict(re.findall(r"^\s+(\w+): [^=\n]+=[^#\n]*#\s*(.*)$", inspect.getsource(config),
+    agent's config, a fitness kind's params; or an instance, whose values the help says are
+    the defaults: a task's settings) but those in `skip`, typed by its default (a bool as true
+    or false), its help the field's comment; `given_settings` collects the ones given."""
+    cls = config if isinstance(config, type) else type(config)  # an instance: its values
+    notes = dict(re.findall(r"^\s+(\w+): [^=\n]+=[^#\n]*#\s*(.*)$", inspect.getsource(cls),
                             re.MULTILINE))
-    for f in dataclasses.fields(config):
+    for f in dataclasses.fields(cls):
         kind = type(f.default)
-        if kind not in (bool, int, float, str):
+        if kind not in (bool, int, float, str) or f.name in skip:
             continue
+        default = getattr(config, f.name)
         group.add_argument(
             f"--{prefix}.{f.name}", dest=f"{prefix}.{f.name}", default=argparse.SUPPRESS,
             type=boolean if kind is bool else kind, metavar=kind.__name__.upper(),
-            help=f"{notes.get(f.name, '')} (its default {f.default!r})".replace("%", "%%"))
+            help=f"{notes.get(f.name, '')} (its default {default!r})".replace("%", "%%"))
 
 
 def given_settings(args: argparse.Namespace, prefix: str) -> dict:

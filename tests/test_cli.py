@@ -740,7 +740,7 @@ def test_a_run_compiles_its_later_programs_ahead(tmp_path, caplog, capsys, confi
     the main thread lowers and compiles none of them. (A table fitness: it has draws to
     confirm, and compiles fast.) The run leaves the files and prints the lines it did before
     its stages handed values in memory (tests/data/run_shape.json: `run_shape` of this run at
-    8cf9bc6, the numbers, bodies and mutations left out)."""
+    8cf9bc6, the numbers, bodies and mutations left out; config.json's task_params since)."""
     args = ["--space", "bad_walker", "--fitness", "table", "--num-envs", "4", "--steps", "4",
             "--chunk", "3", "--explore-steps", "4", "--learning-starts", "8", "--confirm",
             str(confirm), "--confirm-controllers", "2", "--out", str(tmp_path / "run")]
@@ -767,7 +767,8 @@ def test_a_run_compiles_its_later_programs_ahead(tmp_path, caplog, capsys, confi
 def test_a_ppo_run_leaves_the_files_and_lines_it_did(tmp_path, capsys):
     """A run of the PPO fitness (2 steps, a confirm stage, best.gif) leaves the files and
     prints the lines it did before its stages handed values in memory
-    (tests/data/run_shape.json: `run_shape` of this run at 8cf9bc6)."""
+    (tests/data/run_shape.json: `run_shape` of this run at 8cf9bc6; config.json's task_params
+    since)."""
     out = tmp_path / "run"
     assert cli.main(["--space", "bad_walker", "--fitness", "ppo", "--num-envs", "2", "--steps",
                      "2", "--chunk", "1", "--train-steps", "256", "--explore-steps", "2",

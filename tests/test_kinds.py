@@ -208,3 +208,39 @@ def test_a_new_fitness_with_a_setting_runs_from_the_command_line(tmp_path, monke
     assert "params" not in FitnessConfig().to_dict()
     with pytest.raises(ValueError, match="the ppo fitness's settings are none"):
         FitnessConfig(params=LevelParams())
+
+
+def test_a_tasks_settings_are_flags_that_reach_the_ppo_fitness(tmp_path, capsys):
+    """`--task.FIELD` for each setting of the task but its name, its help giving the named
+    task's value as the default, kept in config.json as task_params and set over the
+    registered task's in the fitness the run builds; a value `TaskConfig` refuses, a fitness
+    that trains no controller under the task and a --resume that would change them exit 2."""
+    from evojax_morph.run import cli
+    from evojax_morph.search.pipeline import RunConfig, build
+
+    for task, default in (("walk", 0.5), ("distance", 0.0)):
+        with pytest.raises(SystemExit):
+            cli.main(["--task", task, "--help"])
+        flags = " ".join(capsys.readouterr().out.split())
+        assert f"--task.healthy_reward FLOAT per step alive; 0 keeps a body that cannot move at " \
+               f"fitness 0 (its default {default})" in flags and "--task.name" not in flags
+    out = tmp_path / "run"
+    cfg, *_ = cli.parse(["--num-envs", "1", "--task.healthy_reward", "0.25",
+                         "--task.episode_length", "40", "--out", str(out)])
+    assert cfg.task_params == {"healthy_reward": 0.25, "episode_length": 40}
+    task = build(cfg).fitness.task
+    assert task == em.make_task("walk", healthy_reward=0.25, episode_length=40)
+    (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
+    for bad, why in ((["--task.frame_skip", "0"], "--task.*: a task needs frame_skip"),
+                     (["--fitness", "predefined", "--task.ctrl_cost", "0"],
+                      "--task.*: the predefined fitness trains no controller under the task"),
+                     (["--task.name", "distance"], "unrecognized arguments: --task.name"),
+                     (["--task.healthy_reward", "0.3", "--out", str(out), "--resume"],
+                      "--task.* {'healthy_reward': 0.3} would make another run")):
+        with pytest.raises(SystemExit) as e:
+            cli.parse(bad + ([] if "--resume" in bad else ["--out", str(tmp_path / "bad")]))
+        assert e.value.code == 2 and why in capsys.readouterr().err, bad
+    assert not (tmp_path / "bad").exists()
+    table = RunConfig(space="bad_walker", fitness="table", task_params={"ctrl_cost": 0.0})
+    with pytest.raises(ValueError, match="a table fitness takes no task settings"):
+        build(table)  # what the library refuses too

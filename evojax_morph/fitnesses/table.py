@@ -34,6 +34,7 @@ import numpy as np
 from evojax_morph.fitnesses.base import Fitness, FitnessConfig, FitnessResult, Inputs
 from evojax_morph.morphology import Morphology, signature, stack
 from evojax_morph.spaces import Space
+from evojax_morph.tasks import make_task
 
 TABLES = Path(__file__).resolve().parent / "tables"
 FORMAT = 1  # the file layout's version, in every table's metadata
@@ -278,6 +279,9 @@ def make(space: Space, cfg: FitnessConfig):
     table, sigs_np = load(space, cfg)
     if table.task != cfg.task.name:
         raise ValueError(_other_task(table_path(space, cfg), table.task, cfg.task.name))
+    if cfg.task != make_task(cfg.task.name):
+        raise ValueError(f"the table's results were trained under the {table.task} task's "
+                         "registered settings: a table fitness takes no task settings")
     k, seeds = cfg.ppo.controllers, table.seeds
     if k > table.base:
         raise ValueError(f"{k} controllers per body, but the table holds {table.base} results "

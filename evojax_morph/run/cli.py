@@ -4,9 +4,9 @@ Each environment step mutates the body of every parallel evolution once and eval
 children in one batched fitness call; the agent learns which mutations raise fitness. The run
 directory gets config.json, metrics.csv, bodies.sqlite (every body evaluated), TensorBoard
 events (tb/), curve.png, trajectory.png, best.xml, summary.json, timing.json (where the wall
-clock went, and on what) and Orbax checkpoints, and with
-the ppo fitness controllers/ (the best body's and the greedy trajectory's, for
-`python -m evojax_morph.render`) and best.gif; --resume continues a run from its last checkpoint.
+clock went, and on what) and Orbax checkpoints, and with the ppo fitness controllers/ (the best
+body's and the greedy trajectory's, for `python -m evojax_morph.render`) and best.gif; --resume
+continues a run from its last checkpoint.
 A run holds its directory for its whole life (.lock, with its pid): a second run or resume there
 exits 2 at once. The files it rewrites are replaced whole (`checkpoints.write_atomic`).
 At the end the --confirm bodies of the highest mean fitness in the body log are evaluated again
@@ -44,6 +44,7 @@ from evojax_morph.run.process import (
     add_agent_settings,
     add_distributed_flags,
     add_fitness_settings,
+    add_task_settings,
     start_deterministic,
     start_distributed,
 )
@@ -102,14 +103,18 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
     pre.add_argument("--space", default=RunConfig().space)
     pre.add_argument("--agent", default=RunConfig().agent)
     pre.add_argument("--fitness", default=RunConfig().fitness)
+    pre.add_argument("--task", default="walk")
     known = pre.parse_known_args(argv)[0]
     defaults = RunConfig(**gpu_defaults(known.space)) if gpu else RunConfig()
-    parser = make_parser(defaults, known.agent, known.fitness)
+    kinds = (known.agent, known.fitness, known.task)
+    parser = make_parser(defaults, *kinds)
     args = parser.parse_args(argv)
-    given = given_flags(make_parser(defaults, known.agent, known.fitness), argv)
+    given = given_flags(make_parser(defaults, *kinds), argv)
     args.agent_params = given_settings(args, "agent")
     args.fitness_params = given_settings(args, "fitness")
-    given |= {name for name in ("agent_params", "fitness_params") if getattr(args, name)}
+    args.task_params = given_settings(args, "task")
+    given |= {name for name in ("agent_params", "fitness_params", "task_params")
+              if getattr(args, name)}
     check(parser, args)
     if not args.resume:
         args.physics = physics(parser, args.physics, args.fitness)
@@ -167,10 +172,11 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
     return cfg, out, args.resume, not args.no_gif
 
 
-def make_parser(defaults: RunConfig, agent: str = "", fitness: str = "") -> argparse.ArgumentParser:
+def make_parser(defaults: RunConfig, agent: str = "", fitness: str = "",
+                task: str = "walk") -> argparse.ArgumentParser:
     """The run's flags in groups, their defaults `defaults`' (a RunConfig, GPU defaults
-    applied), with `--agent.FIELD` for each of `agent`'s settings and `--fitness.FIELD` for
-    each of the fitness kind `fitness`'s (`flags.add_settings`)."""
+    applied), with `--agent.FIELD`, `--fitness.FIELD` and `--task.FIELD` for each setting of
+    `agent`, of the fitness kind `fitness` and of `task` (`flags.add_settings`)."""
     parser = Parser(
         prog="python -m evojax_morph.run",
         description=__doc__,
@@ -179,6 +185,7 @@ def make_parser(defaults: RunConfig, agent: str = "", fitness: str = "") -> argp
     add_run_flags(parser.add_argument_group("run"), defaults)
     add_fitness_flags(parser.add_argument_group("fitness"), defaults)
     add_fitness_settings(parser, fitness)
+    add_task_settings(parser, task)
     add_agent_flags(parser.add_argument_group("agent"), defaults)
     add_agent_settings(parser, agent)
     add_confirm_flags(parser.add_argument_group("confirm"), defaults)
@@ -248,31 +255,20 @@ def add_fitness_flags(group, defaults: RunConfig) -> None:
         "--classifier; table: the mean of --controllers stored PPO results of the body, drawn "
         "from a landscape table (no controllers, no inheritance; --table)",
     )
-    add(
-        "--table",
-        default="",
+    add("--table", default="",
         help="table: the landscape table (.npz) built by `python -m experiments.build_tables` "
-        "(default: the space's packaged one, evojax_morph/fitnesses/tables/SPACE.npz)",
-    )
+        "(default: the space's packaged one, evojax_morph/fitnesses/tables/SPACE.npz)")
     add("--classifier", default="",
         help="tame: directory of a classifier trained by `python -m evojax_morph.tame`")
     add("--train-steps", type=int, default=defaults.train_steps,
         help="PPO control steps per fitness evaluation")
-    add(
-        "--controllers",
-        type=int,
-        default=None,
+    add("--controllers", type=int, default=None,
         help="independent PPO controllers trained per body; the fitness is their mean (default: "
-        "1 on a CPU; on a GPU 8 with Warp, 4 with the JAX engine: docs/benchmarks.md)",
-    )
-    add(
-        "--physics",
-        default="auto",
-        choices=[AUTO] + list_engines(),
+        "1 on a CPU; on a GPU 8 with Warp, 4 with the JAX engine: docs/benchmarks.md)")
+    add("--physics", default="auto", choices=[AUTO] + list_engines(),
         help="the engine that steps the fitness's worlds: jax (MJX's JAX engine), warp (MuJoCo "
         "Warp, `pip install 'evojax_morph[warp]'`), or auto: warp where it runs on a GPU, else "
-        "jax (the run says which it took)",
-    )
+        "jax (the run says which it took)")
     add("--size-classes", dest="classes", action="store_true",
         help="ppo: train each body on the smallest of the space's size-class templates that "
         "holds it, not the one padded template (the Constructor's; evojax_morph.physics.classes)")
@@ -304,8 +300,7 @@ def add_agent_flags(group, defaults: RunConfig) -> None:
         "--num-envs)")
     add("--tournament", type=int, default=defaults.tournament,
         help="regularized_evolution, predictor: members sampled per tournament, 1 to "
-        "--population "
-        "(0: an eighth of the population)")
+        "--population (0: an eighth of the population)")
 
 
 def add_confirm_flags(group, defaults: RunConfig) -> None:
@@ -362,6 +357,9 @@ def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
             kind.check(inputs)
         except ValueError as e:
             parser.error(str(e))
+        if args.task_params and not kind.trains_controllers:
+            parser.error(f"--task.*: the {kind.name} fitness trains no controller under the "
+                         "task (ppo does), so the task's settings would change nothing")
     if args.task is None:
         args.task = kind.default_task(inputs)
 
@@ -385,6 +383,10 @@ def bad_value(args) -> str | None:
         fitness_params(args.fitness, args.fitness_params)
     except (ValueError, TypeError) as e:
         return f"--fitness.*: {e}"
+    try:
+        make_task(args.task or "walk", **args.task_params)
+    except (ValueError, TypeError) as e:
+        return f"--task.*: {e}"
     if args.confirm < 0:
         return "--confirm must be >= 0 (0: no confirm stage)"
     if args.confirm_controllers < 2:

@@ -1,6 +1,6 @@
-"""The run command's process before its work: an agent's and a fitness kind's settings as its
-flags (`flags.add_settings`), and what must be set before anything starts a JAX backend (XLA's
-deterministic GPU ops, the start of a run over several hosts)."""
+"""The run command's process before its work: an agent's, a fitness kind's and the task's
+settings as its flags (`flags.add_settings`), and what must be set before anything starts a
+JAX backend (XLA's deterministic GPU ops, the start of a run over several hosts)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from evojax_morph.physics.determinism import deterministic_gpu
 from evojax_morph.physics.engines import AUTO, may_take, registered
 from evojax_morph.search.pipeline import RunConfig
 from evojax_morph.sharding import init_distributed
+from evojax_morph.tasks import TaskConfig, list_tasks, make_task
 
 
 def add_agent_settings(parser, agent: str) -> None:
@@ -33,6 +34,16 @@ def add_fitness_settings(parser, fitness: str) -> None:
         add_settings(parser.add_argument_group(
             f"the {fitness} fitness's own settings (--fitness.FIELD: any field of its params)"),
             "fitness", get_fitness(fitness).params)
+
+
+def add_task_settings(parser, task: str) -> None:
+    """A group of `--task.FIELD` flags on `parser`: the settings of the registered task `task`
+    (`TaskConfig`, its values the defaults; an unknown name: the class's) but its name, which
+    `--task` gives (`add_settings`)."""
+    add_settings(parser.add_argument_group(
+        f"the {task} task's settings (--task.FIELD: any field of its `TaskConfig`, for a "
+        "fitness that trains controllers under it: ppo)"), "task",
+        make_task(task) if task in list_tasks() else TaskConfig, skip=("name",))
 
 
 def add_distributed_flags(parser) -> None:

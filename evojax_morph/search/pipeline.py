@@ -62,6 +62,8 @@ class RunConfig:
     # set over what the flags above make of it (`--agent.FIELD`)
     fitness_params: dict = dataclasses.field(default_factory=dict)  # fields of the fitness
     # kind's settings set over their defaults (`Fitness.params`, `--fitness.FIELD`)
+    task_params: dict = dataclasses.field(default_factory=dict)  # fields of the task's
+    # settings set over the registered task's (`TaskConfig`, `--task.FIELD`)
 
 
 def agent_config(cfg: RunConfig, env: EvolutionEnv) -> Any:
@@ -100,7 +102,7 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     (`agents.config_for_run`).
     """
     task = make_task(cfg.task or get_fitness(cfg.fitness).default_task(
-        Inputs(cfg.space, classifier=cfg.classifier, table=cfg.table)))
+        Inputs(cfg.space, classifier=cfg.classifier, table=cfg.table)), **cfg.task_params)
     space = make_space(cfg.space)
     fit_cfg = FitnessConfig(kind=cfg.fitness, task=task,
                             ppo=standard_ppo(cfg.train_steps, cfg.controllers),
