@@ -22,10 +22,10 @@ def add_settings(group, prefix: str, config: type, skip: tuple[str, ...] = ()) -
     """`--PREFIX.FIELD VALUE` for each field of a kind's settings dataclass `config` (an
     agent's config, a fitness kind's params; or an instance, whose values the help says are
     the defaults: a task's settings) but those in `skip`, typed by its default (a bool as true
-    or false), its help the field's comment; `given_settings` collects the ones given."""
+    or false), its help what the class says of it (`field_notes`); `given_settings` collects
+    the ones given."""
     cls = config if isinstance(config, type) else type(config)  # an instance: its values
-    notes = dict(re.findall(r"^\s+(\w+): [^=\n]+=[^#\n]*#\s*(.*)$", inspect.getsource(cls),
-                            re.MULTILINE))
+    notes = field_notes(cls)
     for f in dataclasses.fields(cls):
         kind = type(f.default)
         if kind not in (bool, int, float, str) or f.name in skip:
@@ -35,6 +35,17 @@ def add_settings(group, prefix: str, config: type, skip: tuple[str, ...] = ()) -
             f"--{prefix}.{f.name}", dest=f"{prefix}.{f.name}", default=argparse.SUPPRESS,
             type=boolean if kind is bool else kind, metavar=kind.__name__.upper(),
             help=f"{notes.get(f.name, '')} (its default {default!r})".replace("%", "%%"))
+
+
+def field_notes(cls: type) -> dict[str, str]:
+    """What a dataclass says of each field: its `# comment`, else its docstring's `Attributes:`
+    entry (continued lines joined)."""
+    doc = inspect.getdoc(cls) or ""
+    section = doc.split("\nAttributes:\n", 1)[1] if "\nAttributes:\n" in doc else ""
+    notes = {name: " ".join(text.split()) for name, text in
+             re.findall(r"^  (\w+): (.*(?:\n    .*)*)", section, re.MULTILINE)}
+    return notes | dict(re.findall(r"^\s+(\w+): [^=\n]+=[^#\n]*#\s*(.*)$",
+                                   inspect.getsource(cls), re.MULTILINE))
 
 
 def given_settings(args: argparse.Namespace, prefix: str) -> dict:

@@ -26,18 +26,32 @@ from evojax_morph.spaces import Space
 @dataclasses.dataclass(frozen=True)
 class TaskConfig:
     """Locomotion task settings; `make_task(name)` gives the registered tasks' (`TASKS`), and
-    the run command sets any field but the name as `--task.FIELD VALUE`."""
+    the run command sets any field but the name as `--task.FIELD VALUE`.
 
-    name: str = "distance"  # the registered task these settings start from (`list_tasks`)
-    frame_skip: int = 4  # physics steps (5 ms each) per control step: 50 Hz control
-    episode_length: int = 250  # control steps per episode (5 s)
-    ctrl_cost: float = 1e-3  # weight of the squared controls of active motors
-    forward_weight: float = 1.0  # weight of the trunk's forward velocity (m/s) per step
-    healthy_reward: float = 0.0  # per step alive; 0 keeps a body that cannot move at fitness 0
-    max_tilt: float = 1.0  # the episode ends where the trunk tilts further (radians)
-    min_height: float = 0.7  # the episode ends where the trunk sinks below this share of its start
-    reset_noise: float = 0.05  # uniform noise on active joint angles and all velocities
-    max_speed: float = 100.0  # a generalised velocity beyond this marks a diverged simulation
+    Attributes:
+      name: the registered task these settings start from (`list_tasks`)
+      frame_skip: physics steps (5 ms each) per control step: 50 Hz control
+      episode_length: control steps per episode (5 s)
+      ctrl_cost: weight of the squared controls of active motors
+      forward_weight: weight of the trunk's forward velocity (m/s) per step
+      healthy_reward: per step alive; 0 keeps a body that cannot move at fitness 0
+      max_tilt: the episode terminates when the trunk tilts further than this (radians)
+      min_height: the episode terminates when the trunk sinks below this fraction of its height
+        at reset
+      reset_noise: uniform noise on active joint angles and all velocities
+      max_speed: a generalised velocity beyond this marks a diverged simulation
+    """
+
+    name: str = "distance"
+    frame_skip: int = 4
+    episode_length: int = 250
+    ctrl_cost: float = 1e-3
+    forward_weight: float = 1.0
+    healthy_reward: float = 0.0
+    max_tilt: float = 1.0
+    min_height: float = 0.7
+    reset_noise: float = 0.05
+    max_speed: float = 100.0
 
     def __post_init__(self):
         if self.frame_skip < 1 or self.episode_length < 1:
