@@ -73,12 +73,20 @@ TINY = [
         (["--agent", "regularized_evolution", "--num-envs", "1", "--population", "1"],
          "the population must be at least 2, got 1"),
         (["--agent", "evolution", "--num-envs", "1"], "it needs at least 2 parallel evolutions"),
+        (["--agent", "predictor", "--population", "3"],  # its parents' settings, shared flags
+         "the population (3) must hold at least a step's 4 children"),
+        (["--agent", "predictor", "--agent.acquisition", "best"],
+         "predictor: acquisition must be 'its' or 'ucb', got 'best'"),
+        (["--agent", "random", "--population", "3"], None),  # a shared setting not its
         (["--seed", str(2**64)], "--seed must fit in 64 bits"),
         (["--space", "bad_walker", "--fitness", "table", "--controllers", "1000"],
          "--controllers 1000: the table holds 32 results a body"),
     ],
 )
 def test_bad_input_exits_with_2(args, message, capsys, tmp_path):
+    if message is None:  # good input: it parses
+        assert cli.parse(args + ["--out", str(tmp_path / "run")])[0].agent == args[1]
+        return
     with pytest.raises(SystemExit) as e:
         cli.main(args + ["--out", str(tmp_path / "run")])
     assert e.value.code == 2

@@ -46,7 +46,8 @@ class AgentKind(NamedTuple):
     name: str  # what `make_agent` and the CLI's --agent call it
     config: type | None
     make_policy: Callable  # make_policy(env, cfg) -> Policy
-    check: Callable | None = None  # check(num_envs, population, tournament): ValueError if not
+    check: Callable | None = None  # check(num_envs): ValueError where an agent without
+    # settings cannot run num_envs evolutions (one with settings: its config's `check`)
 
 
 _REGISTRY: Registry[AgentKind] = Registry("agent", (
@@ -58,8 +59,8 @@ _REGISTRY: Registry[AgentKind] = Registry("agent", (
     AgentKind("random", None, baselines.make_random),
     AgentKind("evolution", None, baselines.make_evolution, baselines.check_evolution),
     AgentKind("regularized_evolution", baselines.RegularizedEvolutionConfig,
-              baselines.make_regularized_evolution, baselines.check_regularized_evolution),
-    AgentKind("predictor", predictor.PredictorConfig, predictor.make_policy, predictor.check),
+              baselines.make_regularized_evolution),
+    AgentKind("predictor", predictor.PredictorConfig, predictor.make_policy),
 ))
 
 
@@ -73,19 +74,25 @@ def get_agent(name: str) -> AgentKind:
     return _REGISTRY.get(name)
 
 
-def settings_problem(name: str, num_envs: int, population: int = 0, tournament: int = 0,
-                     params: dict | None = None) -> str | None:
-    """Why agent `name` cannot run `num_envs` evolutions with these settings and its own
-    `params` (fields of its config; None: it can), checked before anything compiles."""
+def settings_problem(name: str, num_envs: int, params: dict | None = None,
+                     shared: dict | None = None) -> str | None:
+    """Why agent `name` cannot run `num_envs` evolutions with its own `params` (fields of its
+    config) set over the run's `shared` settings it has a field for (`RunOptions`' by name:
+    population, tournament, ...); None: it can. Its config's `check(num_envs)` says, or for an
+    agent without settings `AgentKind.check`; called before anything compiles."""
     kind, params = get_agent(name), params or {}
     try:
-        if kind.check is not None:
-            kind.check(num_envs, params.get("population", population),
-                       params.get("tournament", tournament))
-        if params and kind.config is None:
-            raise ValueError(f"the {name} agent has no settings")
-        if params and hasattr(kind.config, "check"):
-            dataclasses.replace(kind.config(), **params).check(num_envs)
+        if kind.config is None:
+            if params:
+                raise ValueError(f"the {name} agent has no settings")
+            if kind.check is not None:
+                kind.check(num_envs)
+            return None
+        fields = {f.name for f in dataclasses.fields(kind.config)}
+        config = dataclasses.replace(kind.config(), **{
+            k: v for k, v in (shared or {}).items() if k in fields} | params)
+        if hasattr(config, "check"):
+            config.check(num_envs)
     except ValueError as e:
         return str(e)
     return None

@@ -54,7 +54,7 @@ def _take(tree, idx):
 # EVOLUTION, SURVIVORS MEASURED AGAIN
 
 
-def check_evolution(num_envs: int, *_) -> None:
+def check_evolution(num_envs: int) -> None:
     if num_envs < 2:
         raise ValueError(f"evolution keeps num_envs // 2 survivors: it needs at least 2 "
                          f"parallel evolutions (--num-envs), got {num_envs}")
@@ -128,6 +128,10 @@ class RegularizedEvolutionConfig:
                              f"at least 1, got {self.first!r}, {self.walk}")
         return p, s
 
+    def check(self, num_envs: int) -> None:
+        """ValueError where these settings cannot run `num_envs` evolutions (`sizes`)."""
+        self.sizes(num_envs)
+
     @classmethod
     def for_run(cls, env: EvolutionEnv, run: RunOptions) -> RegularizedEvolutionConfig:
         """P and S of the run's --population and --tournament, defaults resolved; raises
@@ -151,10 +155,6 @@ def random_walks(env: EvolutionEnv, key: jax.Array, first: EvoState, longest: in
     morph, _ = jax.lax.scan(step, first.morph,
                             (jnp.arange(longest), jax.random.split(key_walk, longest)))
     return morph
-
-
-def check_regularized_evolution(num_envs: int, population: int, tournament: int) -> None:
-    RegularizedEvolutionConfig(population, tournament).sizes(num_envs)
 
 
 @struct.dataclass

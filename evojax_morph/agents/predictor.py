@@ -112,10 +112,6 @@ class PredictorConfig:
         return cfg
 
 
-def check(num_envs: int, population: int = 0, tournament: int = 0) -> None:
-    PredictorConfig(population=population, tournament=tournament).check(num_envs)
-
-
 class FitnessNet(nn.Module):
     """A body's predicted fitness: the sum over its active nodes of a per-node output of the
     tree GNN (each node's row sees the whole body through the GNN's pooled context)."""

@@ -375,8 +375,8 @@ def bad_value(args) -> str | None:
             return f"--{name.replace('_', '-')} must be positive, got {value}"
     if args.horizon < 0:
         return "--horizon must be >= 0"
-    problem = agents.settings_problem(args.agent, args.num_envs, args.population, args.tournament,
-                                      args.agent_params)
+    problem = agents.settings_problem(args.agent, args.num_envs, args.agent_params, {
+        "population": args.population, "tournament": args.tournament})
     if problem:
         return problem
     try:
