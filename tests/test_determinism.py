@@ -47,7 +47,7 @@ def test_run_asks_for_deterministic_ops_unless_the_ppo_fitness_may_step_on_warp(
 
     def asks(*argv) -> bool:
         asked.clear()
-        process.start_deterministic(list(argv))
+        process.start(list(argv))
         return bool(asked)
 
     assert asks("--physics", "jax")

@@ -45,8 +45,7 @@ from evojax_morph.run.process import (
     add_distributed_flags,
     add_fitness_settings,
     add_task_settings,
-    start_deterministic,
-    start_distributed,
+    start,
 )
 from evojax_morph.search.pipeline import RunConfig
 from evojax_morph.sharding import barrier
@@ -67,12 +66,17 @@ def gpu_defaults(space: str) -> dict:
 RESUME_MAY_CHANGE = ("steps", "physics", "checkpoint_every", "confirm", "confirm_controllers")
 
 
-def given_flags(parser: argparse.ArgumentParser, argv) -> set[str]:
-    """The destinations of the flags `argv` gives `parser` (a flag given with its default
-    value too)."""
-    for action in parser._actions:
-        action.default = argparse.SUPPRESS
-    return set(vars(parser.parse_args(argv)))
+def parse_given(parser: argparse.ArgumentParser, argv) -> tuple[argparse.Namespace, set[str]]:
+    """`argv` parsed once: the flags, defaults where not given, and the names of those given."""
+    defaults = {}
+    for action in parser._actions:  # absent unless given, then filled in
+        if action.default is not argparse.SUPPRESS:
+            defaults[action.dest], action.default = action.default, argparse.SUPPRESS
+    args = parser.parse_args(argv)
+    given = set(vars(args))
+    for dest, value in defaults.items():
+        setattr(args, dest, getattr(args, dest, value))
+    return args, given
 
 
 def resumed(parser, cfg: RunConfig, args, given: set[str]) -> RunConfig:
@@ -106,10 +110,8 @@ def parse(argv) -> tuple[RunConfig, Path, bool, bool]:
     pre.add_argument("--task", default="walk")
     known = pre.parse_known_args(argv)[0]
     defaults = RunConfig(**gpu_defaults(known.space)) if gpu else RunConfig()
-    kinds = (known.agent, known.fitness, known.task)
-    parser = make_parser(defaults, *kinds)
-    args = parser.parse_args(argv)
-    given = given_flags(make_parser(defaults, *kinds), argv)
+    parser = make_parser(defaults, known.agent, known.fitness, known.task)
+    args, given = parse_given(parser, argv)
     args.agent_params = given_settings(args, "agent")
     args.fitness_params = given_settings(args, "fitness")
     args.task_params = given_settings(args, "task")
@@ -413,8 +415,7 @@ def physics(parser: argparse.ArgumentParser, name: str, fitness: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
-    start_deterministic(args)
-    start_distributed(args)
+    start(args)  # before anything touches a JAX backend
     cfg, out, resume, gif = parse(argv)
     barrier("parsed")  # every process checked --out before any of them writes there
     full_precision()  # the agents' networks too, not only the PPO fitness (`full_precision`)

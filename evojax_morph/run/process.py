@@ -1,6 +1,6 @@
 """The run command's process before its work: an agent's, a fitness kind's and the task's
 settings as its flags (`flags.add_settings`), and what must be set before anything starts a
-JAX backend (XLA's deterministic GPU ops, the start of a run over several hosts)."""
+JAX backend (`start`: XLA's deterministic GPU ops, the start of a run over several hosts)."""
 
 from __future__ import annotations
 
@@ -63,19 +63,27 @@ def add_distributed_flags(parser) -> None:
         help="with --distributed outside SLURM: this process's id")
 
 
-def start_deterministic(argv) -> None:
-    """XLA's deterministic GPU ops, before anything touches a JAX backend, unless --fast-gpu or
-    the fitness may step on an engine that no XLA flag makes reproducible
-    (`may_step_unreproducibly`)."""
-    pre = argparse.ArgumentParser(add_help=False)
+def start(argv) -> None:
+    """What must come before anything touches a JAX backend, from one parse of `argv`'s flags
+    for it: XLA's deterministic GPU ops, unless --fast-gpu or the fitness may step on an engine
+    that no XLA flag makes reproducible (`may_step_unreproducibly`); with --distributed, the
+    start over several hosts."""
+    pre = Parser(prog="python -m evojax_morph.run", add_help=False)
     pre.add_argument("--fast-gpu", action="store_true")
     pre.add_argument("--physics", default=AUTO)
     pre.add_argument("--fitness", default=RunConfig().fitness)
     pre.add_argument("--resume", action="store_true")
     pre.add_argument("--out", default=None)
+    add_distributed_flags(pre)
     known = pre.parse_known_args(argv)[0]
     if not known.fast_gpu and not may_step_unreproducibly(known):
         deterministic_gpu()
+    if known.distributed:
+        try:
+            init_distributed(known.coordinator, known.num_processes, known.process_id)
+        except ValueError as e:  # no cluster found and no coordinator given
+            pre.error(f"--distributed: {e} (outside SLURM pass --coordinator, "
+                      "--num-processes and --process-id)")
 
 
 def may_step_unreproducibly(known: argparse.Namespace) -> bool:
@@ -98,16 +106,3 @@ def may_step_unreproducibly(known: argparse.Namespace) -> bool:
         return False  # the parser says the fitness is unknown
     steps_on = may_take(physics) if bound is None else [registered(e) for e in bound]
     return any(engine.unreproducible for engine in steps_on)
-
-
-def start_distributed(argv) -> None:
-    """Must run before anything touches a JAX backend, so before the main parser's defaults."""
-    pre = Parser(prog="python -m evojax_morph.run", add_help=False)
-    add_distributed_flags(pre)
-    known, _ = pre.parse_known_args(argv)
-    if known.distributed:
-        try:
-            init_distributed(known.coordinator, known.num_processes, known.process_id)
-        except ValueError as e:  # no cluster found and no coordinator given
-            pre.error(f"--distributed: {e} (outside SLURM pass --coordinator, "
-                      "--num-processes and --process-id)")
