@@ -36,7 +36,7 @@ from evojax_morph.records.checkpoints import (
     write_atomic,
 )
 from evojax_morph.run import cli, compile_ahead
-from evojax_morph.run import confirm_stage as confirming
+from evojax_morph.search import confirm as confirming
 from evojax_morph.search.pipeline import RunConfig, build
 
 TINY = [

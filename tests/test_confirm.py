@@ -16,7 +16,7 @@ from evojax_morph.fitnesses import table as tb
 from evojax_morph.records import bodylog
 from evojax_morph.records.checkpoints import seal
 from evojax_morph.run import cli
-from evojax_morph.run import confirm_stage as confirming
+from evojax_morph.search import confirm as confirming
 
 S = 8  # results a body in the tables here
 STEADY, LUCKY, UNLUCKY = 350.0, 400.0, -1000.0

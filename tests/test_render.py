@@ -30,8 +30,8 @@ from evojax_morph.physics import opengl
 from evojax_morph.physics.engines import get_engine
 from evojax_morph.records import bodylog, saved_controllers
 from evojax_morph.records.checkpoints import Damaged
-from evojax_morph.run import confirm_stage as confirming
 from evojax_morph.run.recorder import Recorder
+from evojax_morph.search import confirm as confirming
 from evojax_morph.search.pipeline import Greedy, RunConfig, build
 from evojax_morph.tasks import Locomotion
 from experiments import controller_engines, crawler_study

@@ -13,9 +13,9 @@ import itertools
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from evojax_morph.fitnesses import get_fitness
 from evojax_morph.morphology import Morphology
 from evojax_morph.records import bodylog, checkpoints, saved_controllers
+from evojax_morph.search.confirm import confirm_skipped
 
 
 class Start(NamedTuple):
@@ -30,7 +30,8 @@ class Start(NamedTuple):
     kept_best: Any = None  # its best body (`Morphology`) and SavedController (None for a
     # fitness that trains no controllers)
     stale: bool = False  # a confirmed.json is there that is not kept (it is confirmed again)
-    skipped: str | None = None  # why the confirm stage evaluates nothing (`confirm_skipped`)
+    skipped: str | None = None  # why the confirm stage evaluates nothing
+    # (`search.confirm.confirm_skipped`)
 
     @property
     def confirms(self) -> bool:
@@ -38,17 +39,6 @@ class Start(NamedTuple):
         run. Then the greedy trajectory's bodies join its fitness call; else they have one of
         their own (`pipeline.make_greedy_evaluation`) unless kept."""
         return self.skipped is None and self.kept is None
-
-
-def confirm_skipped(cfg) -> str | None:
-    """Why the confirm stage evaluates nothing (confirmed.json's note), None where it does: the
-    one place this is decided."""
-    if cfg.confirm == 0:
-        return "not run (--confirm 0): the best body is the highest single draw, a noisy maximum"
-    if get_fitness(cfg.fitness).deterministic:
-        return (f"not run: the {cfg.fitness} fitness is deterministic, so an evaluation again "
-                "gives the same values; the best body is the highest single draw")
-    return None
 
 
 def start(run, resume: bool, abstract) -> Start:

@@ -199,7 +199,7 @@ def make_greedy_evaluation(p: Pipeline):
     device of this process (`build`). A fresh controller (trained from scratch, as the confirm
     stage's) is the measurement the run's own steps are not: there a child inherits its
     parent's. Where the confirm stage evaluates, these bodies join its call instead
-    (`run.confirm_stage.confirm_record`) and this is not called."""
+    (`search.confirm.confirm_record`) and this is not called."""
     env1, init_fn, k = p.greedy_env, p.init_fn, p.fitness.ppo.controllers
     n = env1.horizon + 1
     device = jax.local_devices()[0]
