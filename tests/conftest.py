@@ -19,19 +19,41 @@ import evojax_morph as em
 CACHE = em.persistent_cache()
 
 
-# The default set (pyproject's -m) compiles at LLVM's lowest optimisation: its time is mostly
-# compiling small programs, and the cold set took 7 min 58 s so against 10 min 20 s
+# The default set (pyproject's -m) compiles at LLVM's lowest optimisation and with XLA's
+# older CPU code emitters (`--xla_cpu_use_fusion_emitters=false`): its time is mostly compiling
+# small programs, some 3,400 of them the eager ops between the tests' jitted calls (28 ms each
+# with the fusion emitters at -O0, 20 ms without). The cold set took 7 min 58 s at -O0
+# against 10 min 20 s, and 4 min 18 s without the fusion emitters against 5 min 32 s
 # (docs/benchmarks.md, "The test suite"). The learning and slow sets mostly run, and keep XLA's
 # default; so does a run of the library.
 DEFAULT_SET = "not learning and not slow"
 FAST_COMPILE = "--xla_backend_optimization_level=0"
+OLD_EMITTERS = "--xla_cpu_use_fusion_emitters=false"
+
+
+def xla_knows(flag: str) -> bool:
+    """Whether this jaxlib's XLA has `flag` (its name is in one of jaxlib's libraries): XLA
+    aborts the process on an XLA_FLAGS entry it does not know, and a later XLA may drop it."""
+    import mmap
+
+    import jaxlib
+
+    name = flag.removeprefix("--").split("=")[0].encode()
+    for lib in Path(jaxlib.__file__).parent.glob("*.so"):
+        with open(lib, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
+            if m.find(name) >= 0:
+                return True
+    return False
 
 
 def pytest_configure(config):
-    """The default set's XLA flag, set before any test starts JAX's backend (which reads it)."""
+    """The default set's XLA flags, set before any test starts JAX's backend (which reads it)."""
     flags = os.environ.get("XLA_FLAGS", "")
     if config.getoption("markexpr") == DEFAULT_SET and "optimization_level" not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} {FAST_COMPILE}".strip()
+        flags = f"{flags} {FAST_COMPILE}"
+        if "fusion_emitters" not in flags and xla_knows(OLD_EMITTERS):
+            flags = f"{flags} {OLD_EMITTERS}"
+        os.environ["XLA_FLAGS"] = flags.strip()
 
 
 @pytest.fixture(scope="session", params=["bad_walker", "constructor", "length_walker"])
