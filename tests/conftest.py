@@ -21,11 +21,12 @@ CACHE = em.persistent_cache()
 
 # The default set (pyproject's -m) compiles at LLVM's lowest optimisation and with XLA's
 # older CPU code emitters (`--xla_cpu_use_fusion_emitters=false`): its time is mostly compiling
-# small programs, some 3,400 of them the eager ops between the tests' jitted calls (28 ms each
-# with the fusion emitters at -O0, 20 ms without). The cold set took 7 min 58 s at -O0
-# against 10 min 20 s, and 4 min 18 s without the fusion emitters against 5 min 32 s
-# (docs/benchmarks.md, "The test suite"). The learning and slow sets mostly run, and keep XLA's
-# default; so does a run of the library.
+# small programs, among them some 3,400 of under 0.2 s, most of those the eager ops between the
+# tests' jitted calls (28 ms each with the fusion emitters at -O0, 20 ms without). The cold set
+# took 7 min 58 s at -O0 against 10 min 20 s, and 4 min 18 s to 4 min 38 s without the fusion
+# emitters against 5 min 31 s to 5 min 54 s with them, on one machine (docs/benchmarks.md, "The
+# test suite"). The learning and slow sets mostly run, and keep XLA's default; so does a run of
+# the library.
 DEFAULT_SET = "not learning and not slow"
 FAST_COMPILE = "--xla_backend_optimization_level=0"
 OLD_EMITTERS = "--xla_cpu_use_fusion_emitters=false"
