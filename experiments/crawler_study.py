@@ -21,9 +21,9 @@ p and intervals that hold together over all the differences (`reproduce.compare_
 
 A call runs the part of the seeds [--first-seed, --first-seed + --seeds) (seed s starts from
 fold_in(PRNGKey(0), s) in any part) and resumes where it stopped: the agents' states after
-every chunk in DATA/seeds_A-B/state.pkl (hundreds of MB on the Crawler: they stay on the
-machine that ran them; checked against the SHA-256 of every array at a resume), the
-confirmations as they come. A finished part leaves
+every chunk in DATA/seeds_A-B/state/ (a run's checkpoints, the newest two, hundreds of MB each
+on the Crawler: they stay on the machine that ran them; checked against the SHA-256 of every
+array at a resume), the confirmations as they come. A finished part leaves
 DATA/seeds_A-B/results.pkl (small, no agent state: it travels), and every call ends by making
 the data file OUT/study_SPACE_TASK.json and its figure (.png: confirmed fitness against
 evaluations spent, a band over seeds per method; distinct bodies each run visited) from every
@@ -94,7 +94,7 @@ def seed_keys(seeds: range) -> jax.Array:
 def run_part(args, seeds: range, part: Path, deadline: float) -> dict | None:
     """Runs (or resumes) the study of `seeds`, confirms its runs' returned bodies and keeps
     what the data file needs in PART/results.pkl (small: no agent state); None past the
-    deadline. The agents' states (PART/state.pkl, hundreds of MB on the Crawler) stay where
+    deadline. The agents' states (PART/state/, hundreds of MB on the Crawler) stay where
     the call ran."""
     cfg = run_config(args.methods[0], setup_of(args))
     methods, p = study.methods_from(cfg, args.methods,
@@ -102,7 +102,7 @@ def run_part(args, seeds: range, part: Path, deadline: float) -> dict | None:
     s = study.make_study(methods, len(seeds))
     preload = engines.registered(cfg.physics).preload  # Warp's kernels, while compiling
     res = study.run_study(s, seed_keys(seeds), args.steps, args.chunk,
-                          resume=part / "state.pkl", deadline=deadline,
+                          resume=part / "state", deadline=deadline,
                           log=lambda line: print(line, flush=True),
                           preload=preload and (lambda: preload(jax.local_devices(), p.space)))
     if res is None:

@@ -4,17 +4,19 @@ training): each method's seeds run as its agent runs them alone, in one fitness 
 import json
 import pickle
 import re
+import shutil
 from types import SimpleNamespace
 
 import jax
 import numpy as np
 import pytest
+from conftest import data_files, flip
 
 import evojax_morph as em
 from evojax_morph import agents
 from evojax_morph.morphology import signature
 from evojax_morph.records import bodylog
-from evojax_morph.records.checkpoints import Damaged
+from evojax_morph.records.checkpoints import DAMAGED, ResumeError
 from evojax_morph.search import loop, study
 from evojax_morph.search.pipeline import RunConfig
 from experiments import common, crawler_study
@@ -87,12 +89,15 @@ def runs_as_alone(names, tmp_path):
     whole = study.run_study(s, keys, STEPS, chunk=2, log=lambda _: events.append("chunk"),
                             preload=lambda: events.append("preload") or Loading())
     assert events == ["preload", "waited", "chunk", "chunk"], events
-    study.run_study(s, keys, 2, chunk=2, resume=tmp_path / "s.pkl")  # a call that stops
-    refuses_a_changed_save(s, keys, tmp_path / "s.pkl")
-    resumed = study.run_study(s, keys, STEPS, chunk=2, resume=tmp_path / "s.pkl")
-    for a, b in zip(jax.tree.leaves((whole["states"], whole["metrics"])),
-                    jax.tree.leaves((resumed["states"], resumed["metrics"]))):
-        np.testing.assert_array_equal(a, b)
+    study.run_study(s, keys, 2, chunk=2, resume=tmp_path / "s")  # a call that stops
+    for resume in (tmp_path / "s", newest_damaged(s, keys, tmp_path / "s")):
+        said = []
+        resumed = study.run_study(s, keys, STEPS, chunk=2, resume=resume, log=said.append)
+        for a, b in zip(jax.tree.leaves((whole["states"], whole["metrics"])),
+                        jax.tree.leaves((resumed["states"], resumed["metrics"])), strict=True):
+            np.testing.assert_array_equal(a, b)
+    assert said[0].startswith("checkpoint 2 is damaged, skipped (Damaged: ['states']"), said
+    assert "its SHA-256 is not the saved one)" in said[0] and (resume / DAMAGED / "2").is_dir()
     assert whole["evaluations_per_second"] > 0
     for m in methods:
         agent = agents.from_policy(m.env, m.policy)
@@ -114,21 +119,30 @@ def runs_as_alone(names, tmp_path):
                                            atol=1e-7, err_msg=m.name)
 
 
-def refuses_a_changed_save(s, keys, path):
-    """A study's save with one number changed after it was written, or without its digest
-    (saved before saves had one), is refused before anything runs, naming the file and the
-    array; the save itself is left as it was."""
-    whole = path.read_bytes()
-    saved = pickle.loads(whole)
-    saved["states"] = jax.tree.map(np.array, saved["states"])  # writable host copies
-    leaf = next(x for x in jax.tree.leaves(saved["states"]) if x.dtype.kind == "f")
-    leaf.flat[0] += 1.0
-    for bad, why in ((saved, r"\['states'\].*: its SHA-256 is not the saved one"),
-                     ({k: v for k, v in saved.items() if k != "digest"}, "no digest saved")):
-        path.write_bytes(pickle.dumps(bad))
-        with pytest.raises(Damaged, match=f"{re.escape(str(path))} is damaged: {why}"):
-            study.run_study(s, keys, STEPS, chunk=2, resume=path)
-    path.write_bytes(whole)
+def newest_damaged(s, keys, folder):
+    """A copy of the study's saves in `folder` (steps 0 and 2: a run's checkpoints, Orbax with
+    the SHA-256 of every array) with the newest's digest of one array changed (as its bytes
+    read as other values would make it): a resume of it goes on from step 0, says which was
+    skipped and why and keeps it aside. With step 0's arrays damaged too (bytes inverted in
+    its data files: they do not read) a resume raises `ResumeError` with both reasons before
+    anything runs, the saves left as they were."""
+    assert sorted(int(d.name) for d in (folder / "checkpoints").iterdir()) == [0, 2]
+    newest, both = folder.with_name("newest_damaged"), folder.with_name("both_damaged")
+    shutil.copytree(folder, newest)
+    digest = newest / "checkpoints" / "2" / "digest" / "metadata"
+    saved = json.loads(digest.read_text())
+    array = next(k for k in saved if k.startswith("['states']"))
+    digest.write_text(json.dumps({**saved, array: "0" * 64}))
+    shutil.copytree(newest, both)
+    for f in data_files(both / "checkpoints" / "0"):
+        if "state" in f.parts:  # the arrays' (not the record's or the digests' JSON)
+            flip(f)
+    before = {f: f.read_bytes() for f in sorted(both.rglob("*")) if f.is_file()}
+    with pytest.raises(ResumeError, match=re.escape(f"step 2: Damaged: {array}: its SHA-256 is "
+                                                    "not the saved one; step 0: ")):
+        study.run_study(s, keys, STEPS, chunk=2, resume=both)
+    assert before == {f: f.read_bytes() for f in sorted(both.rglob("*")) if f.is_file()}
+    return newest
 
 
 def test_the_baselines_run_as_alone_and_resume_as_one_go(tmp_path):

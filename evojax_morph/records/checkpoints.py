@@ -1,5 +1,6 @@
-"""A run's Orbax checkpoints: the manager of RUN/checkpoints, and the restore of the newest
-that reads (`restore_newest`), the damaged ones moved aside, for a --resume (`run.resume`).
+"""A run's Orbax checkpoints, and a study's (`search.study.run_study`): the manager of
+RUN/checkpoints, and the restore of the newest that reads (`restore_newest`), the damaged ones
+moved aside, for a --resume (`run.resume`).
 
 Every checkpoint proves what it holds: beside the agent state it keeps, in the same atomic save,
 the SHA-256 of each array's bytes (`save_args`); a restore recomputes them (`restore_checked`).
@@ -183,8 +184,9 @@ def check(tree, saved: dict | None, finite=("",)) -> None:
 
 def save_args(state, step: int, log: dict | None):
     """Orbax's save of the agent `state` at `step` with its digest and its record, {"step",
-    "log": the body log's proof (`bodylog.BodyLog.proof`), None on the processes that keep no
-    log}, in one atomic step; every process."""
+    "log"}, in one atomic step; every process. log (JSON): a run's body log's proof
+    (`bodylog.BodyLog.proof`), None on the processes that keep no log; a study's timings so
+    far (`search.study.run_study`)."""
     import orbax.checkpoint as ocp
 
     return ocp.args.Composite(state=ocp.args.StandardSave(state),

@@ -11,13 +11,12 @@ call needs that), and a GPU gets calls as full as the study is wide.
 
 `make_study` gives the jitted `init(keys)` and `chunk(states, num_steps)` (one `lax.scan`);
 `run_study` steps it in the host's loop of every search (`loop.chunks`, a run's too), each
-chunk followed by an atomic save, resumed from the file.
+chunk followed by a save as a run's checkpoints (`records.checkpoints`), resumed from them.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import pickle
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -32,7 +31,12 @@ from evojax_morph.agents.base import Policy, make_ask_tell
 from evojax_morph.mdp import EvolutionEnv, EvoState
 from evojax_morph.morphology import canonical, signature
 from evojax_morph.records.bodylog import ranked
-from evojax_morph.records.checkpoints import check, digests, read_error, write_atomic
+from evojax_morph.records.checkpoints import (
+    checkpoint_manager,
+    restore_checked,
+    restore_newest,
+    save_args,
+)
 from evojax_morph.search.loop import chunks
 from evojax_morph.search.pipeline import Pipeline, RunConfig, agent_config, build
 from evojax_morph.sharding import jit_replicated, to_host
@@ -152,13 +156,15 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
     """The study's host loop from the seeds' `keys` (S,): `num_steps` steps in chunks of
     `chunk`, resumable.
 
-    With `resume`, the states and metrics so far are saved there after the start and after
-    every chunk (a pickle with the SHA-256 of every array, as a run's checkpoints keep them,
-    written beside and renamed over: a call stopped mid-write leaves the last whole save) and
-    picked up by the next call, which raises `checkpoints.Damaged` where they do not match;
-    past `deadline` (time.time()) it returns None after the chunk in progress, to be called
-    again. since: when this call's work began (time.time(), e.g. before building the study;
-    default: now). log: called with a line of progress after every chunk (e.g. `print`).
+    With `resume` (a folder), the states and metrics so far are saved there after the start
+    and after every chunk as a run's checkpoints are (`records.checkpoints`: Orbax, beside
+    them the SHA-256 of every array, the newest two kept) and picked up by the next call from
+    the newest that reads, a damaged newer one moved aside (`checkpoints.restore_newest`,
+    which raises `ResumeError` where none reads); past `deadline` (time.time()) it returns
+    None after the chunk in progress, to be called again. since: when this call's work began
+    (time.time(), e.g. before building the study; default: now). log: called with a line of
+    progress after every chunk (e.g. `print`), and with a line for each damaged save skipped
+    (that one printed where `log` is None).
     preload: None, or a function starting the engine's preload (`Engine.preload`) and
     returning its Future: started before this call's first program compiles, waited for
     before that program runs.
@@ -179,22 +185,17 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
             loading.pop().result()
         return program
 
-    so_far = read_saved(resume) if resume and resume.exists() else None
-    if so_far is None:
+    found = None if resume is None else _newest_save(study, keys, resume, log or print)
+    if found is None:
         start = time.perf_counter()
         states = jax.block_until_ready(loaded(study.init.lower(keys).compile())(keys))
         so_far = {"metrics": [], "chunk_seconds": [], "chunk_steps": [], "done": 0,
                   "seconds": 0.0, "init_seconds": time.perf_counter() - start}
     else:
-        states = so_far.pop("states")
-
-    def keep():
-        if resume is not None:
-            kept = {**so_far, "states": to_host(states),
-                    "seconds": so_far["seconds"] + time.time() - called}
-            write_atomic(resume, pickle.dumps({**kept, "digest": digests(kept)}))
-
-    keep()
+        states, so_far = found
+    manager = None if resume is None else checkpoint_manager(resume)[1]  # after the moves aside
+    if manager is not None and found is None:  # a fresh start (a resumed one is saved already)
+        _save(manager, states, so_far, called)
     compiled = {}
 
     def program(n):  # compiled before the clock starts: a call is timed alone
@@ -208,10 +209,13 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
         so_far["chunk_steps"].append(done.n)
         so_far["metrics"].append(done.metrics)
         so_far["done"] = done.step
-        keep()
+        if manager is not None:
+            _save(manager, states, so_far, called)
         if log is not None:
             log(f"study step {done.step} of {num_steps}: {done.seconds:.1f} s for {done.n} "
                 f"({study.evaluations * done.n / done.seconds:.1f} evaluations/s)")
+    if manager is not None:
+        manager.wait_until_finished()
     if so_far["done"] < num_steps:  # past the deadline
         return None
     cat = jax.tree.map(lambda *xs: np.concatenate(xs), *so_far["metrics"])
@@ -227,13 +231,36 @@ def run_study(study: Study, keys: jax.Array, num_steps: int, chunk: int,
     }
 
 
-def read_saved(path: Path) -> dict:
-    """A study's save (`run_study`'s `resume`) without its digest, checked against it.
-    Raises `checkpoints.Damaged`, naming `path`, where it does not read or match."""
-    with read_error(str(path)):
-        saved = pickle.loads(path.read_bytes())
-        check(saved, saved.pop("digest", None) if isinstance(saved, dict) else None, finite=())
-    return saved
+def _newest_save(study: Study, keys: jax.Array, folder: Path, log: Callable):
+    """(states, so far) of the newest of the study's saves in `folder` that reads, checked
+    against its digests (`checkpoints.restore_newest`, which logs those skipped); None where
+    there is none."""
+    def restore(manager, step):  # the tree as saved, on the host
+        states = jax.eval_shape(study.init, keys)
+        saved = {"states": states}
+        if step:  # the metrics of its `step` steps
+            saved["metrics"] = jax.eval_shape(lambda s: study.chunk(s, step), states)[1]
+        abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), saved)
+        return restore_checked(manager, step, abstract)
+
+    found = restore_newest(folder, restore, log)[1]
+    if found is None:
+        return None
+    saved, record = found  # record: {"step", "log": the rest of so far}
+    return saved["states"], {**record["log"], "done": record["step"],
+                             "metrics": [saved["metrics"]] if record["step"] else []}
+
+
+def _save(manager, states, so_far: dict, since: float) -> None:
+    """The study's `states` and `so_far` saved as its checkpoint of the steps done
+    (`checkpoints.save_args`): the states and the metrics so far as arrays, the rest in its
+    record, "seconds" counted up to now from `since`."""
+    kept = {"states": to_host(states)}
+    if so_far["metrics"]:
+        kept["metrics"] = jax.tree.map(lambda *xs: np.concatenate(xs), *so_far["metrics"])
+    rest = {k: v for k, v in so_far.items() if k not in ("metrics", "done")}
+    rest["seconds"] = so_far["seconds"] + time.time() - since
+    manager.save(so_far["done"], args=save_args(kept, so_far["done"], rest))
 
 
 def best_mean_bodies(metrics: dict, upto_steps: int,
