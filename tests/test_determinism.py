@@ -5,6 +5,8 @@ import os
 import subprocess
 import sys
 
+from conftest import FAST_COMPILE, xla_takes
+
 PROBE = r"""
 import os, sys
 import jax
@@ -104,3 +106,11 @@ def test_import_leaves_matplotlib_and_xla_flags_as_they_were(tmp_path):
         "svg", "svg", "--xla_cpu_use_thunk_runtime=true",
         f"--xla_cpu_use_thunk_runtime=true {CPU_FLAG} {ALL_REDUCE_FLAG}"]
     assert (tmp_path / "c.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_the_default_set_adds_a_flag_only_where_xla_takes_it():
+    """XLA aborts the process on a flag its jaxlib does not know (jaxlib 0.12 has no
+    --xla_cpu_use_fusion_emitters, which the default set adds on older ones): the default set
+    adds a flag only where a Python of its own starts with it (`conftest.xla_takes`)."""
+    assert xla_takes(FAST_COMPILE)
+    assert not xla_takes(f"{FAST_COMPILE} --xla_no_such_flag=1")
