@@ -178,10 +178,13 @@ def test_batch_equals_one_at_a_time(walker, checked):
     singles = np.array([[alone(b, c, key) for c, key in enumerate(jax.random.split(k, 2))]
                         for b, k in enumerate(checked.keys)])  # (SEEDS, 2, 3)
     singles, gait = singles[..., 0], singles[..., 1:].mean(1)
-    # Measured on this CPU: the two paths differ by at most 1.2e-4.
-    np.testing.assert_allclose(result.fitness, singles.mean(1), rtol=1e-3, atol=2e-3)
-    np.testing.assert_allclose(result.fitness_std, singles.std(1), rtol=1e-3, atol=2e-3)
-    np.testing.assert_allclose(result.distance, gait[:, 0], rtol=1e-3, atol=1e-4)
+    # Measured: the two paths differ by at most 1.2e-4 with jax 0.10.2; with jax 0.12.1 at the
+    # default set's -O0, body 9 by 9.9e-3 and its distance by 0.2 mm (a contact rounded apart
+    # in one of its 8 episodes; 1.3e-6 at XLA's default optimisation), the others by 4e-5.
+    # Mixed-up bodies still show: the two closest in fitness here are 0.07 apart.
+    np.testing.assert_allclose(result.fitness, singles.mean(1), rtol=1e-3, atol=2e-2)
+    np.testing.assert_allclose(result.fitness_std, singles.std(1), rtol=1e-3, atol=2e-2)
+    np.testing.assert_allclose(result.distance, gait[:, 0], rtol=1e-3, atol=5e-4)
     np.testing.assert_allclose(result.upright, gait[:, 1], rtol=1e-6)
     assert np.ptp(np.asarray(result.upright)) > 0.1  # fresh controllers fall at different times
     assert np.ptp(np.asarray(result.distance)) > 0.02  # bodies moved differently
