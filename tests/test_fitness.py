@@ -179,8 +179,9 @@ def test_batch_equals_one_at_a_time(walker, checked):
                         for b, k in enumerate(checked.keys)])  # (SEEDS, 2, 3)
     singles, gait = singles[..., 0], singles[..., 1:].mean(1)
     # Measured: the two paths differ by at most 1.2e-4 with jax 0.10.2; with jax 0.12.1 at the
-    # default set's -O0, body 9 by 9.9e-3 and its distance by 0.2 mm (a contact rounded apart
-    # in one of its 8 episodes; 1.3e-6 at XLA's default optimisation), the others by 4e-5.
+    # default set's -O0, body 9 by 9.9e-3 and its distance by 0.2 mm with the same upright
+    # fraction (1.3e-6 at XLA's default optimisation; read as contacts rounded apart), the
+    # others by 4e-5.
     # Mixed-up bodies still show: the two closest in fitness here are 0.07 apart.
     np.testing.assert_allclose(result.fitness, singles.mean(1), rtol=1e-3, atol=2e-2)
     np.testing.assert_allclose(result.fitness_std, singles.std(1), rtol=1e-3, atol=2e-2)
