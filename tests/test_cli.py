@@ -809,6 +809,23 @@ def test_with_warp_on_a_gpu_the_warmup_thread_only_lowers(caplog):
     assert _by_thread(caplog.records, COMPILED) == {(False, name): 1}
 
 
+@pytest.mark.parametrize("backend, devices, physics, on, compiles", [
+    ("cpu", 1, "warp", True, True), ("gpu", 1, "jax", True, True),
+    ("gpu", 1, "warp", True, False), ("gpu", 2, "warp", False, False)])
+def test_a_runs_warmup_takes_its_engine_and_devices(monkeypatch, backend, devices, physics,
+                                                     on, compiles):
+    """`Warmup.for_physics`: the thread compiles, but only lowers for an engine that captures
+    CUDA graphs (MuJoCo Warp) on a GPU, and is off there on several GPUs (a fake GPU here:
+    the backend and device count it reads); leaving it closes it."""
+    monkeypatch.setenv("EVOJAX_MORPH_WARMUP", "1")
+    monkeypatch.setattr(jax, "default_backend", lambda: backend)
+    monkeypatch.setattr(jax, "device_count", lambda: devices)
+    waited = {}
+    with compile_ahead.Warmup.for_physics(physics, waited) as ahead:
+        assert (ahead.on, ahead.compiles, ahead.waited is waited) == (on, compiles, True)
+    assert not ahead.on
+
+
 def test_a_warmup_closed_on_an_error_lowers_nothing_more():
     """`close(wait=False)` (a run that failed) drops the jobs: the one already waiting for
     `start` on the thread returns without lowering, the others are cancelled."""

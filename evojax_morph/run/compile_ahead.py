@@ -17,10 +17,10 @@ stream, and a compile that misses the persistent cache autotunes on that stream;
 other breaks the capture (`Warp CUDA error 901`). So `wait` compiles such a program on the
 calling thread, where no Warp call can be running; lowering launches no kernel and stays on the
 thread. The MJX functions it runs that set Warp's default device for the whole process hold
-Warp's call lock (`evojax_morph.physics.warp.callback_lock`). With Warp on several GPUs the run
-turns the warmup off (`driver.execute`). What was measured, and what was tried and reverted:
-docs/benchmarks.md, "Compiling on the second thread breaks Warp's graph capture" and "The Warp
-fitness across GPUs".
+Warp's call lock (`evojax_morph.physics.warp.callback_lock`). With Warp on several GPUs a run's
+warmup is off (`Warmup.for_physics`): runs there hung. What was measured, and what was tried
+and reverted: docs/benchmarks.md, "Compiling on the second thread breaks Warp's graph capture"
+and "The Warp fitness across GPUs".
 """
 
 from __future__ import annotations
@@ -33,6 +33,10 @@ import warnings
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import NamedTuple
+
+import jax
+
+from evojax_morph.physics.engines import registered
 
 THREAD = "evojax_morph-warmup"  # the compiling thread's name prefix
 # How long a thread may hold the GIL while another waits, while the warmup runs: MuJoCo Warp's
@@ -59,13 +63,16 @@ class Warmup:
     given, once `start` is called; `run(name, fn)` on a thread of its own (a subprocess probe,
     say); `wait(name)` before the call that needs the job's result. `compiles` False: the
     thread only lowers, and `wait` compiles. A job that fails only warns: its call then
-    compiles the program itself, as without the warmup."""
+    compiles the program itself, as without the warmup. As a context manager it closes on
+    leaving, dropping the jobs not begun (a run that failed)."""
 
-    def __init__(self, on: bool | None = None, compiles: bool = True):
+    def __init__(self, on: bool | None = None, compiles: bool = True,
+                 waited: dict | None = None):
         self.on = enabled() if on is None else on
         self.compiles = compiles
         self._jobs: dict[str, Future] = {}
-        self.waited: dict[str, float] = {}  # job name: seconds `wait` took (timing.json)
+        # job name: seconds `wait` took (timing.json); `waited` given: filled in
+        self.waited: dict[str, float] = {} if waited is None else waited
         self._lowering: set[str] = set()  # the names of `compile`'s jobs
         self._go = threading.Event()  # `start`
         self._dropped = False  # `close(wait=False)`: the jobs not begun return at once
@@ -73,6 +80,21 @@ class Warmup:
         self._interval = sys.getswitchinterval()
         if self.on:
             sys.setswitchinterval(SWITCH_INTERVAL)
+
+    @classmethod
+    def for_physics(cls, physics: str, waited: dict | None = None) -> Warmup:
+        """The warmup of a run whose fitness steps on engine `physics`: it compiles on its
+        thread, but lowers only where the engine captures graphs on a GPU (MuJoCo Warp), which
+        a compile's autotuning breaks, and there on several GPUs it is off."""
+        graphs = registered(physics).graph_capture and jax.default_backend() == "gpu"
+        return cls(on=False if graphs and jax.device_count() > 1 else None,
+                   compiles=not graphs, waited=waited)
+
+    def __enter__(self) -> Warmup:
+        return self
+
+    def __exit__(self, *error) -> None:
+        self.close(wait=False)
 
     def compile(self, name: str, lower: Callable) -> None:
         """Calls `lower()` on the compiling thread once `start` is called, and compiles what it

@@ -20,7 +20,6 @@ from typing import NamedTuple
 
 import jax
 
-from evojax_morph.physics.engines import registered
 from evojax_morph.records import checkpoints, saved_controllers
 from evojax_morph.run.compile_ahead import Warmup
 from evojax_morph.run.confirm_stage import Confirm
@@ -48,46 +47,42 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     the files and prints. The run as stages: build, evolve (from m0 or a checkpoint), confirm,
     report; the programs called after m0's compile ahead (`compile_ahead`), each stage's queued
     before m0's evaluation (begun after its lowering)."""
-    # Lowered on the compile-ahead thread while m0 compiles and runs, and compiled there unless
-    # the engine captures graphs on a GPU (MuJoCo Warp), which a compile's autotuning breaks
-    # (`compile_ahead`); on several GPUs then not even lowered ahead (runs there hung).
-    graphs = registered(cfg.physics).graph_capture and jax.default_backend() == "gpu"
-    ahead = Warmup(on=False if graphs and jax.device_count() > 1 else None, compiles=not graphs)
-    try:
-        clock = Clock(ahead.waited)
-        record = Recorder(out, lead=jax.process_index() == 0)
-        run, abstract = _build(cfg, out, gif)
-        begin = start(run, resume, abstract)
-        record.open(cfg, run.p.space)  # a checkpoint reads, or none is to: it goes on under cfg
-        clock.part("build")
+    clock = Clock()
+    record = Recorder(out, lead=jax.process_index() == 0)
+    run, abstract = _build(cfg, out, gif)
+    begin = start(run, resume, abstract)
+    record.open(cfg, run.p.space)  # a checkpoint reads, or none is to: it goes on under cfg
+    clock.part("build")
+    # Each stage's programs queued for compiling ahead; on leaving, an error's too, the warmup
+    # drops those not begun.
+    with Warmup.for_physics(cfg.physics, clock.waits) as ahead:
         evolve = Evolve(run, begin, abstract)
         ahead.collect(evolve.programs())
         confirm = Confirm(run, begin)
         ahead.collect(confirm.programs())
         report = Report(run, confirm.shown)
         ahead.collect(report.programs())
-        with checkpoints.saving(out / "checkpoints"):
-            evolved = evolve.run_stage(record, ahead, clock)
-            best = confirm.run_stage(evolved, record, ahead, clock)
-            if run.lead:
-                report.run_stage(evolved, best, record, clock)
-    except OSError:  # a full disk, a folder made read-only: the checkpoints in flight land
-        with contextlib.suppress(Exception):  # first, so the run resumes from the newest
-            record.manager.wait_until_finished()
-        raise
-    finally:
-        ahead.close(wait=False)  # on an error, drops the programs not begun
+        try:
+            with checkpoints.saving(out / "checkpoints"):
+                evolved = evolve.run_stage(record, ahead, clock)
+                best = confirm.run_stage(evolved, record, ahead, clock)
+                if run.lead:
+                    report.run_stage(evolved, best, record, clock)
+        except OSError:  # a full disk, a folder made read-only: the checkpoints in flight land
+            with contextlib.suppress(Exception):  # first, so the run resumes from the newest
+                record.manager.wait_until_finished()
+            raise
 
 
 class Clock:
     """The wall clock of a run's phases, from its start, for timing.json; and of parts within a
     phase, and the main thread's waits for the compile-ahead jobs, to say where a phase goes."""
 
-    def __init__(self, waits: dict | None = None):
+    def __init__(self):
         self.started = self.last = self.mark = time.perf_counter()
         self.phases = {}  # name: seconds since the phase before
         self.parts = {}  # name: seconds since the part or phase before
-        self.waits = {} if waits is None else waits  # `Warmup.waited`: job name: seconds
+        self.waits = {}  # `Warmup.waited`: job name: seconds
 
     def phase(self, name: str) -> None:
         now = time.perf_counter()
