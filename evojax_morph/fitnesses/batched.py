@@ -31,7 +31,8 @@ def make_fitness_fn(space: Space, cfg: FitnessConfig, mesh=None):
     `sharding.batch_mesh`).
     """
     init, evaluate_batch = get_fitness(cfg.kind).make(space, cfg)
-    split = shard_batch(evaluate_batch, mesh, manual=engines.foreign(cfg.physics))
+    manual = engines.foreign(cfg.physics)
+    split = shard_batch(evaluate_batch, mesh, manual=manual)
     return (lambda key: jnp.zeros(())) if init is None else init, split
 
 
@@ -51,11 +52,11 @@ def _compiled(space: Space, cfg: FitnessConfig, mesh):
     `mesh`, jitted; cached. With several processes the outputs are replicated, so that every
     host can read them."""
     init, evaluate_batch = get_fitness(cfg.kind).make(space, cfg)
+    manual = engines.foreign(cfg.physics)
     out = replicated(mesh) if jax.process_count() > 1 else None
-    jit = lambda fn, manual=False: jax.jit(shard_batch(fn, mesh, manual),  # noqa: E731
+    jit = lambda fn, by_hand=False: jax.jit(shard_batch(fn, mesh, by_hand),  # noqa: E731
                                           out_shardings=out)
-    return (None if init is None else jit(jax.vmap(init)),
-            jit(evaluate_batch, engines.foreign(cfg.physics)))
+    return (None if init is None else jit(jax.vmap(init)), jit(evaluate_batch, manual))
 
 
 def init_params(space: Space, keys: jax.Array, cfg: FitnessConfig = FitnessConfig()) -> Params:
