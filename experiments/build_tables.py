@@ -49,7 +49,7 @@ from evojax_morph import ppo
 from evojax_morph.fitnesses import get_fitness
 from evojax_morph.fitnesses import table as tables
 from evojax_morph.physics.determinism import full_precision
-from evojax_morph.run import process
+from evojax_morph.run import cli
 
 GPU_TRAIN_STEPS = 50_000  # `run`'s GPU budget per controller (`Space.gpu_defaults`)
 
@@ -205,7 +205,7 @@ def build(args) -> tables.Table:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    process.start(argv)  # before JAX starts a backend: XLA's deterministic GPU ops
+    cli.start(argv)  # before JAX starts a backend: XLA's deterministic GPU ops
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add = parser.add_argument

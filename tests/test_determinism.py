@@ -41,15 +41,15 @@ def test_run_asks_for_deterministic_ops_unless_the_ppo_fitness_may_step_on_warp(
     tmp_path, monkeypatch
 ):
     from evojax_morph.physics import engines
-    from evojax_morph.run import process
+    from evojax_morph.run import cli
 
     asked = []
-    monkeypatch.setattr(process, "deterministic_gpu", lambda: asked.append(True))
+    monkeypatch.setattr(cli, "deterministic_gpu", lambda: asked.append(True))
     monkeypatch.setattr(engines, "warp_imports", lambda: True)
 
     def asks(*argv) -> bool:
         asked.clear()
-        process.start(list(argv))
+        cli.start(list(argv))
         return bool(asked)
 
     assert asks("--physics", "jax")

@@ -51,7 +51,7 @@ class Engine(NamedTuple):
       GPUs lowers nothing ahead either (a run there can hang; `compile_ahead`, `driver.execute`).
     unreproducible: why a run stepping on it on a GPU is not reproducible from its seed whatever
       XLA does ("" where it is): the run then leaves XLA's deterministic ops off, which would
-      only cost time (`process.start`).
+      only cost time (`run.cli.start`).
     preload: None, or preload(devices, space) -> a Future: starts compiling, on a thread, what
       the engine's first call on those JAX devices, for bodies of `space`, would otherwise
       compile inside it; wait on the Future before that call (`run.evolve`, m0's evaluation).
