@@ -89,7 +89,7 @@ class Pipeline(NamedTuple):
     fitness_fn: Callable  # fitness_fn(keys (N,), morphs (N, ...), params (N, ...))
     env: EvolutionEnv  # num_envs parallel evolutions
     agent: Agent  # init, chunk, scores
-    greedy_env: EvolutionEnv  # the same with one evolution, for the greedy rollout
+    greedy_env: EvolutionEnv  # the same with one evolution, for the greedy walk
     greedy_walk: Callable | None = None  # `make_greedy_walk`'s; None for the baselines: no
     # policy to roll out
     greedy_evaluation: Callable | None = None  # `make_greedy_evaluation`'s (None: baselines)
@@ -112,10 +112,7 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     env = make_env(space, fit_cfg, cfg.num_envs, cfg.horizon, mesh)
     agent_cfg = agent_config(cfg, env) if agent_cfg is None else agent_cfg
     agent = agents.make_agent(cfg.agent, env, agent_cfg, mesh)
-    # One body a call: the greedy rollout runs on one device of this process, a program with
-    # no cross-device communication (split over 2 GPUs with Warp it hung, docs/benchmarks.md).
-    one = make_fitness_fn(space, fit_cfg, batch_mesh(jax.local_devices()[:1]))[1]
-    greedy_env = dataclasses.replace(env, num_envs=1, fitness_fn=one)
+    greedy_env = dataclasses.replace(env, num_envs=1)
     p = Pipeline(space, fit_cfg, env.init_fn, env.fitness_fn, env, agent, greedy_env)
     if agent.scores is None:  # a baseline: no policy to roll out
         return p
@@ -200,15 +197,18 @@ def make_greedy_evaluation(p: Pipeline):
     stage's) is the measurement the run's own steps are not: there a child inherits its
     parent's. Where the confirm stage evaluates, these bodies join its call instead
     (`search.confirm.confirm_record`) and this is not called."""
-    env1, init_fn, k = p.greedy_env, p.init_fn, p.fitness.ppo.controllers
-    n = env1.horizon + 1
+    init_fn, k = p.init_fn, p.fitness.ppo.controllers
+    n = p.greedy_env.horizon + 1
     device = jax.local_devices()[0]
+    # A program on one device of this process, with no cross-device communication (split over
+    # 2 GPUs with Warp it hung, docs/benchmarks.md).
+    fitness_fn = make_fitness_fn(p.space, p.fitness, batch_mesh([device]))[1]
 
     @jax.jit
     def greedy_fitness(bodies, key):
         key_init, key_fit = jax.random.split(key)
         params = jax.vmap(init_fn)(jax.random.split(key_init, n))
-        out = env1.fitness_fn(jax.random.split(key_fit, n), bodies, params)
+        out = fitness_fn(jax.random.split(key_fit, n), bodies, params)
         return out.params, out.fitness
 
     def evaluate(greedy: Greedy, key) -> Greedy:
