@@ -814,14 +814,14 @@ def test_with_warp_on_a_gpu_the_warmup_thread_only_lowers(caplog):
     ("gpu", 1, "warp", True, False), ("gpu", 2, "warp", False, False)])
 def test_a_runs_warmup_takes_its_engine_and_devices(monkeypatch, backend, devices, physics,
                                                      on, compiles):
-    """`Warmup.for_physics`: the thread compiles, but only lowers for an engine that captures
+    """`Warmup.for_engine`: the thread compiles, but only lowers for an engine that captures
     CUDA graphs (MuJoCo Warp) on a GPU, and is off there on several GPUs (a fake GPU here:
     the backend and device count it reads); leaving it closes it."""
     monkeypatch.setenv("EVOJAX_MORPH_WARMUP", "1")
     monkeypatch.setattr(jax, "default_backend", lambda: backend)
     monkeypatch.setattr(jax, "device_count", lambda: devices)
     waited = {}
-    with compile_ahead.Warmup.for_physics(physics, waited) as ahead:
+    with compile_ahead.Warmup.for_engine(engines.registered(physics), waited) as ahead:
         assert (ahead.on, ahead.compiles, ahead.waited is waited) == (on, compiles, True)
     assert not ahead.on
 

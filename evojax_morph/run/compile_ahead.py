@@ -18,7 +18,7 @@ other breaks the capture (`Warp CUDA error 901`). So `wait` compiles such a prog
 calling thread, where no Warp call can be running; lowering launches no kernel and stays on the
 thread. The MJX functions it runs that set Warp's default device for the whole process hold
 Warp's call lock (`evojax_morph.physics.warp.callback_lock`). With Warp on several GPUs a run's
-warmup is off (`Warmup.for_physics`): runs there hung. What was measured, and what was tried
+warmup is off (`Warmup.for_engine`): runs there hung. What was measured, and what was tried
 and reverted: docs/benchmarks.md, "Compiling on the second thread breaks Warp's graph capture"
 and "The Warp fitness across GPUs".
 """
@@ -35,8 +35,6 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from typing import NamedTuple
 
 import jax
-
-from evojax_morph.physics.engines import registered
 
 THREAD = "evojax_morph-warmup"  # the compiling thread's name prefix
 # How long a thread may hold the GIL while another waits, while the warmup runs: MuJoCo Warp's
@@ -82,11 +80,11 @@ class Warmup:
             sys.setswitchinterval(SWITCH_INTERVAL)
 
     @classmethod
-    def for_physics(cls, physics: str, waited: dict | None = None) -> Warmup:
-        """The warmup of a run whose fitness steps on engine `physics`: it compiles on its
-        thread, but lowers only where the engine captures graphs on a GPU (MuJoCo Warp), which
-        a compile's autotuning breaks, and there on several GPUs it is off."""
-        graphs = registered(physics).graph_capture and jax.default_backend() == "gpu"
+    def for_engine(cls, engine, waited: dict | None = None) -> Warmup:
+        """The warmup of a run whose fitness steps on `engine` (`engines.Engine`): it compiles
+        on its thread, but lowers only where the engine captures graphs on a GPU (MuJoCo Warp),
+        which a compile's autotuning breaks, and there on several GPUs it is off."""
+        graphs = engine.graph_capture and jax.default_backend() == "gpu"
         return cls(on=False if graphs and jax.device_count() > 1 else None,
                    compiles=not graphs, waited=waited)
 

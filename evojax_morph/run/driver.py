@@ -55,7 +55,7 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     clock.part("build")
     # Each stage's programs queued for compiling ahead; on leaving, an error's too, the warmup
     # drops those not begun.
-    with Warmup.for_physics(cfg.physics, clock.waits) as ahead:
+    with Warmup.for_engine(run.p.engine, clock.waits) as ahead:
         evolve = Evolve(run, begin, abstract)
         ahead.collect(evolve.programs())
         confirm = Confirm(run, begin)

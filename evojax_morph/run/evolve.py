@@ -7,7 +7,6 @@ import sys
 import time
 from typing import NamedTuple
 
-from evojax_morph.physics.engines import registered
 from evojax_morph.run.compile_ahead import Job
 from evojax_morph.run.resume import Start
 from evojax_morph.search.loop import chunks
@@ -100,7 +99,7 @@ class Evolve:
         the preload still to wait for before the first chunk call: a resumed run's, else
         None)."""
         run, begin = self.run, self.start
-        preload = registered(run.cfg.physics).preload
+        preload = run.p.engine.preload
         if begin.step is not None:
             ahead.start()
             loading = preload(batch_mesh().local_devices, run.p.space) if preload else None

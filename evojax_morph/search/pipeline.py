@@ -26,6 +26,7 @@ from evojax_morph.fitnesses import (
 )
 from evojax_morph.fitnesses.batched import make_env, make_fitness_fn
 from evojax_morph.mdp import EvolutionEnv, masked_argmax
+from evojax_morph.physics.engines import Engine, registered
 from evojax_morph.sharding import batch_mesh, to_host
 from evojax_morph.spaces import Space, make_space
 from evojax_morph.tasks import make_task
@@ -85,6 +86,7 @@ class Pipeline(NamedTuple):
 
     space: Space
     fitness: FitnessConfig
+    engine: Engine  # what the fitness's worlds step on (`cfg.physics`): its warmup, its preload
     init_fn: Callable  # init_fn(key) -> one controller (`fitness.make_fitness_fn`)
     fitness_fn: Callable  # fitness_fn(keys (N,), morphs (N, ...), params (N, ...))
     env: EvolutionEnv  # num_envs parallel evolutions
@@ -110,10 +112,11 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
                             classes=cfg.classes,
                             params=fitness_params(cfg.fitness, cfg.fitness_params))
     env = make_env(space, fit_cfg, cfg.num_envs, cfg.horizon, mesh)
+    engine = registered(cfg.physics)
     agent_cfg = agent_config(cfg, env) if agent_cfg is None else agent_cfg
     agent = agents.make_agent(cfg.agent, env, agent_cfg, mesh)
     greedy_env = dataclasses.replace(env, num_envs=1)
-    p = Pipeline(space, fit_cfg, env.init_fn, env.fitness_fn, env, agent, greedy_env)
+    p = Pipeline(space, fit_cfg, engine, env.init_fn, env.fitness_fn, env, agent, greedy_env)
     if agent.scores is None:  # a baseline: no policy to roll out
         return p
     return p._replace(greedy_walk=make_greedy_walk(p), greedy_evaluation=make_greedy_evaluation(p))
