@@ -1,6 +1,6 @@
 """A run's Orbax checkpoints, and a study's (`search.study.run_study`): the manager of
 RUN/checkpoints, and the restore of the newest that reads (`restore_newest`), the damaged ones
-moved aside, for a --resume (`run.resume`).
+moved aside, for a --resume (`run.resume`), and metrics.csv's rows up to it (`metrics_rows`).
 
 Every checkpoint proves what it holds: beside the agent state it keeps, in the same atomic save,
 the SHA-256 of each array's bytes (`save_args`); a restore recomputes them (`restore_checked`).
@@ -15,8 +15,10 @@ against it (`run.resume`). Saved controllers and confirmed.json carry digests of
 from __future__ import annotations
 
 import contextlib
+import csv
 import fcntl
 import hashlib
+import itertools
 import json
 import logging
 import os
@@ -245,6 +247,25 @@ def read_sealed(path: Path) -> dict:
 
 
 DAMAGED = "checkpoints_damaged"  # where damaged checkpoints are moved, under the run
+
+
+def metrics_rows(path: Path, step: int) -> list[dict]:
+    """The rows of steps 1 to `step` of metrics.csv `path`, which a resume from `step` keeps.
+    Raises `Damaged` where the file does not hold them whole (deleted, emptied,
+    cut short: a run resumed from it would end with rows missing); rows after `step` (the
+    steps the resume redoes) may be cut short."""
+    with read_error(str(path)), open(path, newline="") as f:
+        rows = list(itertools.islice(csv.DictReader(f), step))
+    whole = 0  # the rows of steps 1, 2, ... in order, every value there
+    for r in rows:
+        if None in r or None in r.values() or r.get("step") != str(whole + 1):
+            break
+        whole += 1
+    if whole < step:
+        raise Damaged(
+            f"--resume: {str(path)!r} does not hold the rows of steps 1 to {step} whole (it "
+            f"holds {whole}): the run cannot go on from it (a file changed or damaged)")
+    return rows
 
 
 def _why(e: Exception) -> str:

@@ -1,8 +1,9 @@
 """The host side of a run: its stages, each handing its results to the next in memory.
 
-`execute(cfg, out, resume)` builds the run (`pipeline.build`), finds where it starts (m0, or
-with `resume` its newest checkpoint: `resume.start`, the one place the run reads its own
-directory), then runs its stages: `Evolve` (the steps chunk by chunk, then the trained agent's
+`execute(cfg, out, resume)` builds the run (`pipeline.build`), opens its directory with the
+`Recorder`, which reads where the run starts before it writes anything (m0, or with `resume` its
+newest checkpoint: `resume.start`, the one place the run reads its own directory), then runs
+its stages: `Evolve` (the steps chunk by chunk, then the trained agent's
 greedy walk from m0) -> `Evolved`; `Confirm` (the bodies of the highest mean in the body log
 evaluated again from scratch, the greedy trajectory's in the same call; its best is the run's
 best body) -> `Best`; `Report`. Each stage offers the programs it will call through one method,
@@ -26,7 +27,6 @@ from evojax_morph.run.confirm_stage import Confirm
 from evojax_morph.run.evolve import Evolve
 from evojax_morph.run.recorder import Recorder
 from evojax_morph.run.report import Report
-from evojax_morph.run.resume import start
 from evojax_morph.search.pipeline import Pipeline, RunConfig, build
 from evojax_morph.sharding import batch_mesh, replicated
 
@@ -50,8 +50,7 @@ def execute(cfg: RunConfig, out: Path, resume: bool, gif: bool = True) -> None:
     clock = Clock()
     record = Recorder(out, lead=jax.process_index() == 0)
     run, abstract = _build(cfg, out, gif)
-    begin = start(run, resume, abstract)
-    record.open(cfg, run.p.space)  # a checkpoint reads, or none is to: it goes on under cfg
+    begin = record.open(run, resume, abstract)  # read back first, then written
     clock.part("build")
     # Each stage's programs queued for compiling ahead; on leaving, an error's too, the warmup
     # drops those not begun.

@@ -18,6 +18,7 @@ import numpy as np
 
 from evojax_morph.figures import plots, video
 from evojax_morph.records import bodylog, checkpoints, saved_controllers
+from evojax_morph.run.resume import Start, start
 from evojax_morph.sharding import broadcast_json
 
 
@@ -29,15 +30,20 @@ class Recorder:
         self.space = self.manager = self.log = self._tb = None
         self.rows: list[dict] = []  # metrics.csv's, in memory and on disk alike
 
-    def open(self, cfg, space) -> None:
-        """config.json, the settings the run goes on under; the checkpoints and the body log
-        of its `space`. Once it knows where it starts (`resume.start` reads them first)."""
+    def open(self, run, resume: bool, abstract) -> Start:
+        """Where the run `run` (`driver.Run`) starts, read from its directory first
+        (`resume.start`: m0, or with `resume` its newest checkpoint that reads, restored to
+        `abstract`; a file it reads back that is not the run's raises `checkpoints.Damaged`
+        before anything is written); then the directory taken under the settings the run goes
+        on under: config.json, the checkpoints, the body log of its space."""
+        begin = start(run, resume, abstract)
         if self.lead:
             checkpoints.write_atomic(self.out / "config.json",
-                                     json.dumps(dataclasses.asdict(cfg), indent=1))
-        self.space = space
+                                     json.dumps(dataclasses.asdict(run.cfg), indent=1))
+        self.space = space = run.p.space
         _, self.manager = checkpoints.checkpoint_manager(self.out)  # Orbax's CheckpointManager
         self.log = bodylog.BodyLog(self.out / "bodies.sqlite", space) if self.lead else None
+        return begin
 
     def begin(self, step: int, rows: list[dict], first=None) -> None:
         """The steps begin after `step` (-1 with `first`, m0 evaluated in every evolution,

@@ -8,8 +8,6 @@ again. Everything later is handed on in memory (`Start`).
 
 from __future__ import annotations
 
-import csv
-import itertools
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -60,8 +58,14 @@ def start(run, resume: bool, abstract) -> Start:
     else:
         state, log = restored[0], restored[1]["log"]
         check_log(out / "bodies.sqlite", step, log)
-        rows = metrics_rows(out / "metrics.csv", step)
-    kept = kept_record(before, cfg, max(step or 0, cfg.steps), log)
+        rows = checkpoints.metrics_rows(out / "metrics.csv", step)
+    # confirmed.json's record where the run was confirmed at this step with these settings
+    # from the body log whose proof the restored checkpoint holds, so that a --resume of a
+    # finished run does not do it again; not another run's, nor one of a log since gone on
+    now = {"env_steps": max(step or 0, cfg.steps), "bodies": cfg.confirm,
+           "controllers": cfg.confirm_controllers, "log": log}
+    kept = before if log is not None and before is not None and all(
+        before.get(k) == v for k, v in now.items()) else None
     best = None
     if kept and kept["confirmed"]:
         controllers = (saved_controllers.load(out / saved_controllers.DIR / "best")
@@ -69,18 +73,6 @@ def start(run, resume: bool, abstract) -> Start:
         best = Morphology.from_dict(kept["best_morphology"]), controllers
     return Start(step, state, rows, log, kept, best, before is not None and kept is None,
                  skipped)
-
-
-def kept_record(before: dict | None, cfg, step: int, log: dict | None) -> dict | None:
-    """confirmed.json's record (`before`; None: no such file) where the run was confirmed at
-    `step` with these settings from the body log whose proof the restored checkpoint holds
-    (`log`; None: none restored), so a --resume of a finished run does not do it again; else
-    None (another run's file, or one of a log since gone on)."""
-    if before is None:
-        return None
-    now = {"env_steps": step, "bodies": cfg.confirm, "controllers": cfg.confirm_controllers,
-           "log": log}
-    return before if log is not None and all(before.get(k) == v for k, v in now.items()) else None
 
 
 def check_log(path: Path, step: int, saved: dict | None) -> None:
@@ -98,22 +90,3 @@ def check_log(path: Path, step: int, saved: dict | None) -> None:
             f"--resume: {str(path)!r} is not the body log checkpoint {step} was saved with "
             f"({saved['rows']:,} evaluations up to step {step}; it holds {what}): the run "
             "cannot go on from it (a log changed, damaged or of another run)")
-
-
-def metrics_rows(path: Path, step: int) -> list[dict]:
-    """The rows of steps 1 to `step` of metrics.csv `path`, which a resume from `step` keeps.
-    Raises `checkpoints.Damaged` where the file does not hold them whole (deleted, emptied,
-    cut short: a run resumed from it would end with rows missing); rows after `step` (the
-    steps the resume redoes) may be cut short."""
-    with checkpoints.read_error(str(path)), open(path, newline="") as f:
-        rows = list(itertools.islice(csv.DictReader(f), step))
-    whole = 0  # the rows of steps 1, 2, ... in order, every value there
-    for r in rows:
-        if None in r or None in r.values() or r.get("step") != str(whole + 1):
-            break
-        whole += 1
-    if whole < step:
-        raise checkpoints.Damaged(
-            f"--resume: {str(path)!r} does not hold the rows of steps 1 to {step} whole (it "
-            f"holds {whole}): the run cannot go on from it (a file changed or damaged)")
-    return rows
