@@ -113,12 +113,17 @@ def config_for_run(name: str, env: EvolutionEnv, run: RunOptions, params: dict |
     return dataclasses.replace(config, **params) if params else config
 
 
-def make_policy(name: str, env: EvolutionEnv, cfg: Any = None, **overrides) -> Policy:
+def make_policy(name: str, env: EvolutionEnv, cfg: Any = None, run: RunOptions | None = None,
+                **overrides) -> Policy:
     """How agent `name` acts and learns on `env` (see `Policy`).
 
-    cfg: its config (default: the config's defaults); `overrides` replace fields of it.
+    cfg: its config; default: what a run's shared settings `run` give it (`config_for_run`),
+      or without `run` the config's defaults. `overrides` replace fields of it (with `run`
+      and no `cfg`, as `config_for_run`'s `params`).
     """
     kind = get_agent(name)
+    if cfg is None and run is not None:
+        cfg, overrides = config_for_run(name, env, run, overrides), {}
     if kind.config is not None:
         cfg = dataclasses.replace(kind.config() if cfg is None else cfg, **overrides)
     elif cfg is not None or overrides:
@@ -126,10 +131,11 @@ def make_policy(name: str, env: EvolutionEnv, cfg: Any = None, **overrides) -> P
     return kind.make_policy(env, cfg)
 
 
-def make_agent(name: str, env: EvolutionEnv, cfg: Any = None, mesh=None, **overrides) -> Agent:
+def make_agent(name: str, env: EvolutionEnv, cfg: Any = None, mesh=None,
+               run: RunOptions | None = None, **overrides) -> Agent:
     """The agent `name` on `env`, jitted, its state replicated on `mesh` (default: every
-    device); `cfg` and `overrides` as in `make_policy`."""
-    policy = make_policy(name, env, cfg, **overrides)
+    device); `cfg`, `run` and `overrides` as in `make_policy`."""
+    policy = make_policy(name, env, cfg, run, **overrides)
     return from_policy(env, policy, mesh)
 
 

@@ -67,18 +67,24 @@ class RunConfig:
     # settings set over the registered task's (`TaskConfig`, `--task.FIELD`)
 
 
-def agent_config(cfg: RunConfig, env: EvolutionEnv) -> Any:
-    """The config of the run's agent (None for an agent without settings): what the run's
-    shared settings give it, `cfg.agent_params` set over it (`agents.config_for_run`)."""
-    run = RunOptions(
+def run_options(cfg: RunConfig, space: Space) -> RunOptions:
+    """The run's settings that each agent takes its share of (`RunOptions`): `cfg`'s, and the
+    reward scale of its fitness on `space`."""
+    return RunOptions(
         hidden=cfg.hidden,
-        reward_scale=1.0 / get_fitness(cfg.fitness).scale(env.space),
+        reward_scale=1.0 / get_fitness(cfg.fitness).scale(space),
         explore_steps=cfg.explore_steps,
         learning_starts=cfg.learning_starts,
         population=cfg.population,
         tournament=cfg.tournament,
     )
-    return agents.config_for_run(cfg.agent, env, run, cfg.agent_params)
+
+
+def agent_config(cfg: RunConfig, env: EvolutionEnv) -> Any:
+    """The config of the run's agent (None for an agent without settings): what the run's
+    shared settings give it, `cfg.agent_params` set over it (`agents.config_for_run`), as
+    `build` makes it."""
+    return agents.config_for_run(cfg.agent, env, run_options(cfg, env.space), cfg.agent_params)
 
 
 class Pipeline(NamedTuple):
@@ -100,8 +106,8 @@ class Pipeline(NamedTuple):
 def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     """The run of `cfg`, its fitness batch and agent state on `mesh` (default: every device).
 
-    agent_cfg: the agent's own config; default: what the run's settings give it
-    (`agents.config_for_run`).
+    agent_cfg: the agent's own config, `cfg.agent_params` set over it; default: what the
+    run's settings give it (`agent_config`).
     """
     task = make_task(cfg.task or get_fitness(cfg.fitness).default_task(
         Inputs(cfg.space, classifier=cfg.classifier, table=cfg.table)), **cfg.task_params)
@@ -113,8 +119,8 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
                             params=fitness_params(cfg.fitness, cfg.fitness_params))
     env = make_env(space, fit_cfg, cfg.num_envs, cfg.horizon, mesh)
     engine = registered(cfg.physics)
-    agent_cfg = agent_config(cfg, env) if agent_cfg is None else agent_cfg
-    agent = agents.make_agent(cfg.agent, env, agent_cfg, mesh)
+    run = run_options(cfg, space)
+    agent = agents.make_agent(cfg.agent, env, agent_cfg, mesh, run, **cfg.agent_params)
     greedy_env = dataclasses.replace(env, num_envs=1)
     p = Pipeline(space, fit_cfg, engine, env.init_fn, env.fitness_fn, env, agent, greedy_env)
     if agent.scores is None:  # a baseline: no policy to roll out
