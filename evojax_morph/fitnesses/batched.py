@@ -55,7 +55,7 @@ def _compiled(space: Space, cfg: FitnessConfig, mesh):
     manual = engines.foreign(cfg.physics)
     out = replicated(mesh) if jax.process_count() > 1 else None
     jit = lambda fn, by_hand=False: jax.jit(shard_batch(fn, mesh, by_hand),  # noqa: E731
-                                          out_shardings=out)
+                                           out_shardings=out)
     return (None if init is None else jit(jax.vmap(init)), jit(evaluate_batch, manual))
 
 
