@@ -55,6 +55,8 @@ class EvolutionEnv:
       init_fn: init_fn(key) -> one controller.
       horizon: mutations an episode; an ended episode restarts from m0.
       num_envs: N, the parallel evolutions a step mutates and evaluates.
+      reward_scale: what a run's agent multiplies the rewards by before learning: 1 over the
+        typical size of the fitness's values (`fitnesses.Fitness.scale`).
     """
 
     space: Space
@@ -62,6 +64,7 @@ class EvolutionEnv:
     init_fn: Callable
     horizon: int
     num_envs: int
+    reward_scale: float = 1.0
 
     def observe(self, state: EvoState) -> Observation:
         mask = jax.vmap(self.space.action_mask)(state.morph).reshape(self.num_envs, -1)

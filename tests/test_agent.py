@@ -15,7 +15,7 @@ from evojax_morph.search.pipeline import RunConfig, build
 
 HORIZON, NUM_ENVS, CHUNK, CHUNKS = 4, 16, 50, 4
 CFG = dqn.DQNConfig(hidden=32, epsilon_steps=100, learning_starts=64)
-RUN_OPTIONS = agents.RunOptions(hidden=16, reward_scale=0.01, explore_steps=2, learning_starts=4)
+RUN_OPTIONS = agents.RunOptions(hidden=16, explore_steps=2, learning_starts=4)
 
 
 def test_double_q_target_by_hand():

@@ -47,9 +47,9 @@ class A2CConfig:
 
     @classmethod
     def for_run(cls, env: EvolutionEnv, run: RunOptions) -> A2CConfig:
-        """A run's settings: one update per environment step (`unroll` 1)."""
-        del env
-        return cls(hidden=run.hidden, reward_scale=run.reward_scale)
+        """A run's settings: one update per environment step (`unroll` 1); the rewards scaled
+        as `env`'s are for a run's agent."""
+        return cls(hidden=run.hidden, reward_scale=env.reward_scale)
 
 
 class ActorCritic(nn.Module):

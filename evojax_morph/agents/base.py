@@ -41,7 +41,6 @@ class RunOptions(NamedTuple):
     (`for_run`)."""
 
     hidden: int  # GNN width
-    reward_scale: float  # rewards are multiplied by this before learning
     explore_steps: int  # environment steps of exploration (ddqn: epsilon's annealing)
     learning_starts: int  # transitions stored before learning (ddqn)
     population: int = 0  # regularized_evolution: members (0: its default)

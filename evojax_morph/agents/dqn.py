@@ -53,9 +53,9 @@ class DQNConfig:
 
     @classmethod
     def for_run(cls, env: EvolutionEnv, run: RunOptions) -> DQNConfig:
-        """A run's settings: epsilon anneals over its explore steps, minibatches of 32."""
-        del env
-        return cls(hidden=run.hidden, reward_scale=run.reward_scale,
+        """A run's settings: epsilon anneals over its explore steps, minibatches of 32; the
+        rewards scaled as `env`'s are for a run's agent."""
+        return cls(hidden=run.hidden, reward_scale=env.reward_scale,
                    epsilon_steps=run.explore_steps, learning_starts=run.learning_starts,
                    batch_size=32)
 

@@ -40,10 +40,12 @@ def make_env(space: Space | str, fitness: FitnessConfig = FitnessConfig(), num_e
              horizon: int | None = None, mesh=None) -> EvolutionEnv:
     """`num_envs` parallel evolutions of `space` (an instance or a registered name) under the
     batched fitness of `fitness`, split across `mesh` (default: every device); `horizon`
-    mutations an episode (default: the space's)."""
+    mutations an episode (default: the space's); its rewards scaled by 1 over the fitness's
+    typical size on `space` for a run's agent."""
     space = make_space(space) if isinstance(space, str) else space
     init_fn, fitness_fn = make_fitness_fn(space, fitness, mesh)
-    return EvolutionEnv(space, fitness_fn, init_fn, horizon or space.default_horizon, num_envs)
+    return EvolutionEnv(space, fitness_fn, init_fn, horizon or space.default_horizon, num_envs,
+                        reward_scale=1.0 / get_fitness(fitness.kind).scale(space))
 
 
 @functools.lru_cache(maxsize=16)

@@ -67,12 +67,10 @@ class RunConfig:
     # settings set over the registered task's (`TaskConfig`, `--task.FIELD`)
 
 
-def run_options(cfg: RunConfig, space: Space) -> RunOptions:
-    """The run's settings that each agent takes its share of (`RunOptions`): `cfg`'s, and the
-    reward scale of its fitness on `space`."""
+def run_options(cfg: RunConfig) -> RunOptions:
+    """The settings of `cfg` that each agent takes its share of (`RunOptions`)."""
     return RunOptions(
         hidden=cfg.hidden,
-        reward_scale=1.0 / get_fitness(cfg.fitness).scale(space),
         explore_steps=cfg.explore_steps,
         learning_starts=cfg.learning_starts,
         population=cfg.population,
@@ -84,7 +82,7 @@ def agent_config(cfg: RunConfig, env: EvolutionEnv) -> Any:
     """The config of the run's agent (None for an agent without settings): what the run's
     shared settings give it, `cfg.agent_params` set over it (`agents.config_for_run`), as
     `build` makes it."""
-    return agents.config_for_run(cfg.agent, env, run_options(cfg, env.space), cfg.agent_params)
+    return agents.config_for_run(cfg.agent, env, run_options(cfg), cfg.agent_params)
 
 
 class Pipeline(NamedTuple):
@@ -109,6 +107,7 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
     agent_cfg: the agent's own config, `cfg.agent_params` set over it; default: what the
     run's settings give it (`agent_config`).
     """
+    run = run_options(cfg)
     task = make_task(cfg.task or get_fitness(cfg.fitness).default_task(
         Inputs(cfg.space, classifier=cfg.classifier, table=cfg.table)), **cfg.task_params)
     space = make_space(cfg.space)
@@ -119,7 +118,6 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
                             params=fitness_params(cfg.fitness, cfg.fitness_params))
     env = make_env(space, fit_cfg, cfg.num_envs, cfg.horizon, mesh)
     engine = registered(cfg.physics)
-    run = run_options(cfg, space)
     agent = agents.make_agent(cfg.agent, env, agent_cfg, mesh, run, **cfg.agent_params)
     greedy_env = dataclasses.replace(env, num_envs=1)
     p = Pipeline(space, fit_cfg, engine, env.init_fn, env.fitness_fn, env, agent, greedy_env)
