@@ -143,6 +143,14 @@ def test_a_new_agent_with_a_setting_runs_from_the_command_line(tmp_path, monkeyp
     got = agent_config(RunConfig(fitness="table", agent="regularized_evolution", num_envs=4,
                                  agent_params={"population": 64}), p.env)
     assert (got.population, got.tournament) == (64, 8)
+    # the agents' reward scale comes with the env (1 / the fitness kind's `scale`, 100 for the
+    # table), and `--agent.reward_scale` is set over it
+    assert p.env.reward_scale == 1 / 100
+    env = dataclasses.replace(p.env, reward_scale=0.25)
+    for name in ("ddqn", "qrdqn", "a2c"):
+        assert agent_config(RunConfig(fitness="table", agent=name), env).reward_scale == 0.25
+    assert agent_config(RunConfig(fitness="table", agent_params={"reward_scale": 2.0}),
+                        env).reward_scale == 2.0
 
 
 @dataclasses.dataclass(frozen=True)
