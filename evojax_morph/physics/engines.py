@@ -54,7 +54,7 @@ class Engine(NamedTuple):
       only cost time (`run.cli.start`).
     preload: None, or preload(devices, space) -> a Future: starts compiling, on a thread, what
       the engine's first call on those JAX devices, for bodies of `space`, would otherwise
-      compile inside it; wait on the Future before that call (`run.evolve`, m0's evaluation).
+      compile inside it; wait on the Future before that call (`run.stages.Evolve`, m0's evaluation).
     gpu_controllers: the controllers per body a run on a GPU trains by default
       (`Space.gpu_controllers`), spending the engine's speed on a fitness with less noise
       (docs/benchmarks.md, H100, 256 bodies of 50,000 PPO steps): 4 on the JAX engine (cv 0.23,

@@ -23,10 +23,8 @@ import jax
 
 from evojax_morph.records import checkpoints, saved_controllers
 from evojax_morph.run.compile_ahead import Warmup
-from evojax_morph.run.confirm_stage import Confirm
-from evojax_morph.run.evolve import Evolve
 from evojax_morph.run.recorder import Recorder
-from evojax_morph.run.report import Report
+from evojax_morph.run.stages import Confirm, Evolve, Report
 from evojax_morph.search.pipeline import Pipeline, RunConfig, build
 from evojax_morph.sharding import batch_mesh, replicated
 

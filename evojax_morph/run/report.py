@@ -1,15 +1,12 @@
-"""The end of a run: its report, printed and handed to the recorder (summary.json, the plots,
-best.gif, timing.json), from the earlier stages' results (`evolve`, `confirm_stage`)."""
+"""What a run's report says (its stage: `stages.Report`): summary.json and its printed digest,
+the plots and best.gif handed to the recorder, timing.json, from the earlier stages' results
+(`stages.Evolved`, `stages.Best`)."""
 
 from __future__ import annotations
-
-import time
 
 import jax
 import numpy as np
 
-from evojax_morph.figures import video
-from evojax_morph.run.compile_ahead import Job
 from evojax_morph.search.pipeline import Greedy
 from evojax_morph.tasks import gait_word
 
@@ -54,39 +51,6 @@ def walks(entry: dict, seconds: float) -> str:
     return (f"{word} {entry['distance']:.2f} m in {seconds:g} s, upright "
             f"{entry['upright']:.0%} (the whole episode in {entry['upright_whole']:.0%} of "
             "its evaluations)")
-
-
-class Report:
-    """The report stage of `run` (`driver.Run`), on the lead process; best.gif replays
-    controllers of the fitness config `shown` (those the confirm stage leaves,
-    `Confirm.shown`)."""
-
-    def __init__(self, run, shown):
-        self.run, self.shown = run, shown
-
-    def programs(self) -> list[Job]:
-        """best.gif's replay and its GL probes."""
-        run, shown = self.run, self.shown
-        if not (run.gif and run.lead):
-            return []
-        return [Job("replay", lambda: video.lower_replay(run.p.space, shown)),
-                Job("gl", video.choose_gl, own_thread=True)]
-
-    def run_stage(self, evolved, best, record, clock) -> None:
-        """The report from the earlier stages' results, `evolved` (`evolve.Evolved`) and
-        `best` (`confirm_stage.Best`), and their `clock` (`driver.Clock`): the results
-        (`write_results`), then timing.json, through the `record`er."""
-        run = self.run
-        write_results(run, evolved, best, record, clock.phase)
-        times = timing(time.perf_counter() - clock.started, evolved.chunk_seconds) | {
-            "phases": clock.phases, "first_chunk_dispatch": evolved.dispatch,
-            "chunk_seconds": [round(s, 2) for _, s in evolved.chunk_seconds],
-            "parts": clock.parts, "waits": clock.waits, "where": where(run.cfg)}
-        record.timing(times)
-        if times["step_seconds"]:
-            print(f"time: {times['seconds']:.0f} s, {times['step_seconds']:.3g} s a step, "
-                  f"{times['outside_steps_seconds']:.0f} s outside the steps (timing.json; "
-                  "imports not counted)")
 
 
 def write_results(run, evolved, best, record, phase=lambda name: None) -> None:

@@ -8,7 +8,7 @@ independent evaluations (controllers trained from fresh initialisations, no inhe
 table fitness C fresh draws), all in one batched fitness call, and reports each body's mean
 with a 95% t-interval.
 
-A run's confirm, which its confirm stage (`run.confirm_stage`) calls: `confirm_record` confirms
+A run's confirm, which its confirm stage (`run.stages.Confirm`) calls: `confirm_record` confirms
 the bodies of the highest mean in its body log, the greedy trajectory's bodies in the same call
 (or says why nothing is confirmed: `confirm_skipped`), `reported_best` chooses the body the run
 reports as its best, and `save_controllers` gives the controllers a run keeps of it and of the

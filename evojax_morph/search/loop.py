@@ -1,6 +1,7 @@
-"""The host's loop of every search: a run's steps (`run.evolve`) and a study's (`study.run_study`)
-alike, in calls of at most `chunk` steps, each call's results brought to the host. What a
-caller does between calls (a body log, a checkpoint, a save, a progress line) is its own."""
+"""The host's loop of every search: a run's steps (`run.stages.Evolve`) and a study's
+(`study.run_study`) alike, in calls of at most `chunk` steps, each call's results brought to
+the host. What a caller does between calls (a body log, a checkpoint, a save, a progress line)
+is its own."""
 
 from __future__ import annotations
 

@@ -129,7 +129,7 @@ def build(cfg: RunConfig, mesh=None, agent_cfg: Any = None) -> Pipeline:
 class Greedy(NamedTuple):
     """A greedy rollout from m0: horizon + 1 bodies, m0 first. The walk (`make_greedy_walk`)
     gives the bodies and actions; their evaluation (`make_greedy_evaluation`, or the confirm
-    stage's call, `run.confirm_stage`) their fitness and controllers."""
+    stage's call, `run.stages.Confirm`) their fitness and controllers."""
 
     morphs: list  # the bodies (`Morphology`, on the host)
     fitness: list[float] | None  # each body's mean over its fresh controllers; None: not evaluated
@@ -189,7 +189,7 @@ def make_greedy_walk(p: Pipeline):
                  for a, before, after in zip(actions, bodies, bodies[1:])]
         return Greedy(morphs=bodies, fitness=None, actions=names, params=None)
 
-    def lower(learner, first, key):  # the abstract arguments (`run.evolve.Evolve.programs`)
+    def lower(learner, first, key):  # the abstract arguments (`run.stages.Evolve.programs`)
         return walk.lower(*jax.tree.map(_on(device), (learner, jax.eval_shape(env0, first),
                                                       key)))
 
@@ -224,7 +224,7 @@ def make_greedy_evaluation(p: Pipeline):
         return greedy._replace(fitness=[float(f) for f in fitness],
                                params=[_at(params, i) for i in range(n)], controllers=k)
 
-    def lower(key):  # the abstract key (`run.confirm_stage.Confirm.programs`)
+    def lower(key):  # the abstract key (`run.stages.Confirm.programs`)
         bodies = jax.eval_shape(lambda: jax.tree.map(
             lambda x: jnp.repeat(jnp.asarray(x)[None], n, 0), p.space.initial()))
         return greedy_fitness.lower(*jax.tree.map(_on(device), (bodies, key)))
