@@ -3,7 +3,7 @@
 `execute(cfg, out, resume)` builds the run (`pipeline.build`), opens its directory with the
 `Recorder`, which reads where the run starts before it writes anything (m0, or with `resume` its
 newest checkpoint: `resume.start`, the one place the run reads its own directory), then runs
-its stages: `Evolve` (the steps chunk by chunk, then the trained agent's
+its three stages (`stages`): `Evolve` (the steps chunk by chunk, then the trained agent's
 greedy walk from m0) -> `Evolved`; `Confirm` (the bodies of the highest mean in the body log
 evaluated again from scratch, the greedy trajectory's in the same call; its best is the run's
 best body) -> `Best`; `Report`. Each stage offers the programs it will call through one method,
